@@ -1,0 +1,34 @@
+# make all [SEQ=name]   set up if needed, generate the synthetic row (or use data/raw/SEQ), run every stage
+# make test             set up if needed and run the test suite
+# make <stage> SEQ=...  run one stage (stage names come from pipeline/dag.py)
+SEQ ?= synth_row
+ARGS ?=
+VENV := .venv
+PY := $(VENV)/bin/python
+PAG := $(VENV)/bin/pag
+STAMP := $(VENV)/.installed
+# The stage list is declared once, in pipeline/dag.py (importable without the venv).
+STAGES := $(shell python3 -c 'from pipeline.dag import STAGE_ORDER; print(*STAGE_ORDER)' 2>/dev/null)
+
+.PHONY: all test setup evaluate bench clean $(STAGES)
+
+all: $(STAMP)
+	$(PAG) all --seq $(SEQ) $(ARGS)
+
+test: $(STAMP)
+	$(PY) -m pytest -q $(ARGS)
+
+setup: $(STAMP)
+
+$(STAMP): pyproject.toml scripts/setup.sh
+	bash scripts/setup.sh
+	touch $@
+
+$(STAGES) evaluate: $(STAMP)
+	$(PAG) $@ --seq $(SEQ) $(ARGS)
+
+bench: $(STAMP)
+	$(PAG) bench $(ARGS)
+
+clean:
+	rm -rf data/interim/$(SEQ) data/processed/$(SEQ)

@@ -1,0 +1,1 @@
+"""The pipeline: DAG declaration, runner, config, catalog I/O and CLI."""

@@ -1,0 +1,141 @@
+"""`pag`: run one stage, the whole DAG, an evaluation or a benchmark.
+
+    pag <stage> --seq SEQ [--config FILE] [--set key=value ...] [--force]
+    pag all --seq SEQ [--from STAGE] [--to STAGE] [--force]
+    pag bench <name> [args ...]          (bench/<name>.py; `pag bench list`)
+    pag config --seq SEQ [--doc]         resolved config (with field docs)
+    pag schema [TABLE]                   table columns, units and docs
+    pag stages                           the DAG
+Exit code 0 on success; otherwise a one-paragraph error on stderr and a non-zero code.
+"""
+from __future__ import annotations
+
+import argparse
+import importlib
+import logging
+import pkgutil
+import sys
+import traceback
+from pathlib import Path
+
+from pipeline.dag import STAGE_ORDER
+
+
+def _common(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--seq", default="synth_row", help="sequence folder under data/raw/ (default: synth_row)")
+    p.add_argument("--config", type=Path, default=None, help="YAML file with config sections")
+    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                   help="override a config value, e.g. --set synth.seed=3 (repeatable)")
+    p.add_argument("--data-root", type=Path, default=Path("data"), help="data folder (default: ./data)")
+    p.add_argument("--force", action="store_true", help="rerun even if inputs and config are unchanged")
+    p.add_argument("--no-progress", action="store_true", help="hide progress bars")
+    p.add_argument("--scheduler", default=None, metavar="ADDRESS",
+                   help="dask.distributed scheduler address for nerf_fit (default: a local cluster)")
+    p.add_argument("--debug", action="store_true", help="show tracebacks")
+
+
+def parser() -> argparse.ArgumentParser:
+    top = argparse.ArgumentParser(prog="pag", description=__doc__.split("\n")[0],
+                                  formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__)
+    sub = top.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    for name in STAGE_ORDER:
+        _common(sub.add_parser(name, help=f"run the {name} stage"))
+    p_all = sub.add_parser("all", help="run every stage in order, skipping unchanged ones")
+    _common(p_all)
+    p_all.add_argument("--from", dest="from_stage", choices=STAGE_ORDER, default=None, help="first stage to run")
+    p_all.add_argument("--to", dest="to_stage", choices=STAGE_ORDER, default=None, help="last stage to run")
+    p_cfg = sub.add_parser("config", help="print the resolved config")
+    _common(p_cfg)
+    p_cfg.add_argument("--doc", action="store_true", help="with each field's documentation")
+    p_schema = sub.add_parser("schema", help="print table schemas (columns, units, docs)")
+    p_schema.add_argument("table", nargs="?", default=None)
+    sub.add_parser("stages", help="list the stages and their inputs/outputs")
+    p_bench = sub.add_parser("bench", help="run a benchmark from bench/ (`pag bench list`)")
+    p_bench.add_argument("name", help="benchmark name, or 'list'")
+    p_bench.add_argument("args", nargs=argparse.REMAINDER, help="arguments for the benchmark")
+    return top
+
+
+def _runner(args: argparse.Namespace):
+    from pipeline.runner import Runner
+
+    overrides = list(args.overrides)
+    if args.scheduler:
+        overrides.append(f"run.scheduler={args.scheduler}")
+    return Runner(args.seq, data_root=args.data_root, config_file=args.config, overrides=overrides,
+                  show_progress=False if args.no_progress else None)
+
+
+def _bench(name: str, argv: list[str]) -> int:
+    import bench
+
+    names = sorted(m.name for m in pkgutil.iter_modules(bench.__path__) if not m.name.startswith("_"))
+    if name == "list":
+        print("\n".join(names))
+        return 0
+    if name not in names:
+        raise ValueError(f"no benchmark {name!r}; benchmarks: {names}")
+    mod = importlib.import_module(f"bench.{name}")
+    return int(mod.main(argv) or 0)
+
+
+def dispatch(args: argparse.Namespace) -> int:
+    if args.command == "stages":
+        from pipeline import dag
+
+        for s in dag.build():
+            print(f"{s.name:16s} in: {', '.join(s.inputs + s.optional_inputs) or '-':40s} out: {', '.join(s.outputs)}")
+        return 0
+    if args.command == "schema":
+        import schemas
+
+        for t in [args.table] if args.table else schemas.TABLES:
+            print(schemas.describe(t) + "\n")
+        return 0
+    if args.command == "bench":
+        return _bench(args.name, args.args)
+    runner = _runner(args)
+    if args.command == "config":
+        from pipeline import config as cfgmod
+
+        for section, value in runner.config.items():
+            if args.doc:
+                print("\n".join(cfgmod.describe(section, type(value), value)))
+            else:
+                print(f"{section}: {cfgmod.to_dict(value)}")
+        return 0
+    if args.command == "all":
+        names = [s.name for s in runner.active()]
+        lo = names.index(args.from_stage) if args.from_stage in names else 0
+        hi = names.index(args.to_stage) + 1 if args.to_stage in names else len(names)
+        runner.run(names[lo:hi], force=args.force)
+        out = runner.data_root / "processed" / runner.seq
+        report = out / "report" / "report.html"
+        print(f"[pag] outputs: {runner.data_root / 'interim' / runner.seq} and {out}")
+        if report.is_file():
+            print(f"[pag] report: {report.resolve()}")
+        return 0
+    runner.run([args.command], force=args.force)
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parser().parse_args(argv)
+    logging.basicConfig(level=logging.INFO if getattr(args, "debug", False) else logging.WARNING,
+                        format="[pag] %(message)s")
+    try:
+        return dispatch(args)
+    except KeyboardInterrupt:
+        print("pag: interrupted", file=sys.stderr)
+        return 130
+    except Exception as err:  # one paragraph for the user; --debug for the traceback
+        if getattr(args, "debug", False):
+            traceback.print_exc()
+        kind = type(err).__name__
+        print(f"pag {args.command}: error: {err}" + ("" if getattr(args, "debug", False) else
+              f" ({kind}; rerun with --debug for the traceback)"), file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,136 @@
+"""Reading and writing datasets: atomic table writes, atomic directory swaps, content hashes."""
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import shutil
+from pathlib import Path
+
+import pandas as pd
+import pyarrow as pa
+import pyarrow.parquet as pq
+
+import schemas
+
+
+def fsync_dir(path: Path) -> None:
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def atomic_write_bytes(path: Path, data: bytes) -> None:
+    """Write to a temp file beside `path`, fsync, rename: readers see the old or the new file, never half."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    with open(tmp, "wb") as fh:
+        fh.write(data)
+        fh.flush()
+        os.fsync(fh.fileno())
+    os.replace(tmp, path)
+    fsync_dir(path.parent)
+
+
+def write_table(df: pd.DataFrame, path: Path, schema_name: str, metadata: dict[str, str] | None = None) -> None:
+    """Validate `df` against its schema and write it atomically as Parquet."""
+    table = schemas.validate(df, schema_name)
+    if metadata:
+        merged = dict(table.schema.metadata or {})
+        merged.update({k.encode(): v.encode() for k, v in metadata.items()})
+        table = table.replace_schema_metadata(merged)
+    sink = pa.BufferOutputStream()
+    pq.write_table(table, sink, compression="zstd")
+    atomic_write_bytes(path, sink.getvalue().to_pybytes())
+
+
+def read_table(path: Path, schema_name: str) -> pd.DataFrame:
+    """Read a Parquet table and check it against its schema (errors name the file)."""
+    if not path.is_file():
+        raise FileNotFoundError(f"table {path} does not exist")
+    try:
+        table = pq.read_table(path)
+    except (pa.ArrowInvalid, OSError) as err:
+        raise ValueError(f"{path} is not a readable Parquet file: {err}") from err
+    df = table.to_pandas()
+    try:
+        schemas.validate(df, schema_name)
+    except schemas.SchemaError as err:
+        raise schemas.SchemaError(f"{path}: {err}") from err
+    return df
+
+
+def swap_dir(staging: Path, final: Path) -> None:
+    """Move a finished staging folder into place, replacing `final`."""
+    final.parent.mkdir(parents=True, exist_ok=True)
+    old = final.with_name(f".{final.name}.old-{os.getpid()}")
+    if final.exists():
+        os.replace(final, old)
+    os.replace(staging, final)
+    fsync_dir(final.parent)
+    if old.exists():
+        shutil.rmtree(old)
+
+
+def staging_dir(final: Path) -> Path:
+    path = final.with_name(f".{final.name}.staging-{os.getpid()}")
+    if path.exists():
+        shutil.rmtree(path)
+    path.mkdir(parents=True)
+    return path
+
+
+class HashCache:
+    """Content hashes of files, cached by (size, mtime_ns) so unchanged files are not re-read.
+
+    The hash is of the content; the cache only avoids recomputing it. Stored as JSON.
+    """
+
+    def __init__(self, path: Path):
+        self.path = path
+        self.entries: dict[str, list] = {}
+        if path.is_file():
+            try:
+                self.entries = json.loads(path.read_text())
+            except (json.JSONDecodeError, OSError):
+                self.entries = {}
+        self.dirty = False
+
+    def file_hash(self, path: Path) -> str:
+        st = path.stat()
+        key = str(path.resolve())
+        hit = self.entries.get(key)
+        if hit and hit[0] == st.st_size and hit[1] == st.st_mtime_ns:
+            return hit[2]
+        h = hashlib.blake2b(digest_size=16)
+        with open(path, "rb") as fh:
+            for chunk in iter(lambda: fh.read(1 << 20), b""):
+                h.update(chunk)
+        digest = h.hexdigest()
+        self.entries[key] = [st.st_size, st.st_mtime_ns, digest]
+        self.dirty = True
+        return digest
+
+    def tree_hash(self, path: Path) -> str:
+        """Hash of a file, or of a folder's relative paths and file contents; '' if missing."""
+        if path.is_file():
+            return self.file_hash(path)
+        if not path.is_dir():
+            return ""
+        h = hashlib.blake2b(digest_size=16)
+        for p in sorted(path.rglob("*")):
+            if p.is_file() and not p.name.startswith("."):
+                h.update(p.relative_to(path).as_posix().encode())
+                h.update(self.file_hash(p).encode())
+        return h.hexdigest()
+
+    def save(self) -> None:
+        if self.dirty:
+            live = {k: v for k, v in self.entries.items() if Path(k).exists()}
+            atomic_write_bytes(self.path, json.dumps(live).encode())
+            self.dirty = False

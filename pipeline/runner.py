@@ -1,0 +1,219 @@
+"""The runner: resolves config, loads each stage's inputs from the catalog, runs it, validates and
+writes its outputs atomically, and skips stages whose code, config and inputs are unchanged
+(a manifest of content hashes per stage under data/interim/<SEQ>/_manifest/).
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import shutil
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import pandas as pd
+import yaml
+
+from pipeline import config as cfgmod
+from pipeline import dag, io
+from pipeline.catalog import DATASETS, dataset
+from pipeline.stage import StageContext
+
+log = logging.getLogger("pag")
+REPO_ROOT = Path(__file__).resolve().parents[1]
+
+
+class PipelineError(RuntimeError):
+    """A stage could not run or failed; the message says which and why."""
+
+
+@dataclass
+class StageResult:
+    stage: str
+    status: str  # "ran" | "skipped"
+    seconds: float = 0.0
+    summary: dict[str, Any] = field(default_factory=dict)
+
+
+def code_hash(stage: dag.Stage) -> str:
+    """Hash of the stage's source file and of the project packages it imports (sources, nerf, ...)."""
+    import ast
+
+    src_file = Path(stage.module.__file__)
+    h = hashlib.blake2b(src_file.read_bytes(), digest_size=16)
+    tree = ast.parse(src_file.read_text())
+    packages = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.ImportFrom) and node.module:
+            packages.add(node.module.split(".")[0])
+        elif isinstance(node, ast.Import):
+            packages.update(a.name.split(".")[0] for a in node.names)
+    for pkg in sorted(packages - {"pipeline", "stages"}):
+        pkg_dir = REPO_ROOT / pkg
+        if pkg_dir.is_dir() and (pkg_dir / "__init__.py").exists():
+            for p in sorted(pkg_dir.rglob("*")):
+                if p.suffix in (".py", ".cpp", ".cu", ".h") and "__pycache__" not in p.parts:
+                    h.update(p.relative_to(REPO_ROOT).as_posix().encode())
+                    h.update(p.read_bytes())
+    return h.hexdigest()
+
+
+class Runner:
+    def __init__(self, seq: str, data_root: Path = Path("data"), config_file: Path | None = None,
+                 overrides: list[str] | tuple[str, ...] = (), show_progress: bool | None = None,
+                 stages: list[dag.Stage] | None = None):
+        if not seq or "/" in seq or seq.startswith("."):
+            raise PipelineError(f"--seq must be a folder name under data/raw/, got {seq!r}")
+        self.seq = seq
+        self.data_root = Path(data_root)
+        self.stages = dag.check(stages) if stages is not None else dag.build()
+        raw_cfg = cfgmod.merge(cfgmod.load_file(config_file), cfgmod.parse_set(list(overrides)))
+        sections: dict[str, type] = {"run": cfgmod.RunConfig}
+        sections.update({s.name: s.config_class for s in self.stages})
+        self.config = cfgmod.resolve(sections, raw_cfg)
+        self.synthetic = (seq.startswith("synth") or "synth" in raw_cfg
+                          or (self.raw_dir / "gt" / "synth_config.yaml").is_file())
+        self.show_progress = self.config["run"].progress if show_progress is None else show_progress
+        self.manifest_dir = self.data_root / "interim" / seq / "_manifest"
+        self.hashes = io.HashCache(self.manifest_dir / "hashcache.json")
+
+    @property
+    def raw_dir(self) -> Path:
+        return dataset("raw").path(self.data_root, self.seq)
+
+    def active(self) -> list[dag.Stage]:
+        """Stages that run for this sequence (synth only for synthetic rows; disabled optional stages out)."""
+        out = []
+        for s in self.stages:
+            if s.name == "synth" and not self.synthetic:
+                continue
+            if getattr(self.config[s.name], "enabled", True) is False:
+                continue
+            out.append(s)
+        return out
+
+    def write_resolved_config(self) -> None:
+        text = yaml.safe_dump({k: cfgmod.to_dict(v) for k, v in self.config.items()}, sort_keys=False).encode()
+        for area in ("interim", "processed"):
+            io.atomic_write_bytes(self.data_root / area / self.seq / "config.resolved.yaml", text)
+
+    # -- running -------------------------------------------------------------------------------
+    def run(self, targets: list[str] | None = None, force: bool = False) -> list[StageResult]:
+        """Run `targets` (stage names) or every active stage, in DAG order."""
+        active = self.active()
+        names = [s.name for s in active]
+        if targets:
+            unknown = [t for t in targets if t not in [s.name for s in self.stages]]
+            if unknown:
+                raise PipelineError(f"unknown stage(s) {unknown}; stages: {[s.name for s in self.stages]}")
+            if "synth" in targets and not self.synthetic:
+                raise PipelineError(
+                    f"sequence {self.seq!r} is not synthetic (name does not start with 'synth' and no synth.* "
+                    f"setting given); `pag synth` would overwrite data/raw/{self.seq}. Use --seq synth_<name>.")
+            chosen = [s for s in self.stages if s.name in targets]
+        else:
+            chosen = active
+        self.check_raw(chosen)
+        self.write_resolved_config()
+        results = []
+        for s in chosen:
+            results.append(self.run_stage(s, force=force))
+        self.hashes.save()
+        return results
+
+    def check_raw(self, chosen: list[dag.Stage]) -> None:
+        needs_raw = any("raw" in s.inputs for s in chosen)
+        makes_raw = any(s.name == "synth" for s in chosen)
+        if needs_raw and not makes_raw and not self.raw_dir.is_dir():
+            root = self.data_root / "raw"
+            have = sorted(p.name for p in root.iterdir() if p.is_dir()) if root.is_dir() else []
+            hint = ("run `pag synth` (or `pag all`) first to generate it" if self.synthetic else
+                    "put a recorded row there: a BUP20-style folder (rgb/, depth/, odometry.csv, params.yaml, "
+                    "pred_seg/, annotations.json) or a ROS 1/ROS 2 bag with pred_seg/ beside it (see data/README.md); "
+                    "synthetic rows are made by names starting with 'synth'")
+            raise PipelineError(f"sequence {self.seq!r} not found: {self.raw_dir} does not exist; {hint}. "
+                                f"Sequences present: {have or 'none'}")
+
+    def _input_path(self, name: str) -> Path:
+        return dataset(name).path(self.data_root, self.seq)
+
+    def stage_key(self, s: dag.Stage) -> tuple[str, dict[str, str]]:
+        input_hashes = {}
+        for name in s.inputs + s.optional_inputs:
+            path = self._input_path(name)
+            if name in s.inputs and not path.exists():
+                producer = dag.producers(self.stages).get(name)
+                how = f"run `pag {producer} --seq {self.seq}` first (or `pag all`)" if producer else "see data/README.md"
+                raise PipelineError(f"stage {s.name!r} needs {name!r} ({path}), which does not exist; {how}")
+            input_hashes[name] = self.hashes.tree_hash(path)
+        payload = json.dumps({"code": code_hash(s), "config": cfgmod.to_dict(self.config[s.name]),
+                              "run": cfgmod.to_dict(self.config["run"]) if s.name == "nerf_fit" else None,
+                              "inputs": input_hashes, "seq": self.seq}, sort_keys=True, default=str)
+        return hashlib.blake2b(payload.encode(), digest_size=16).hexdigest(), input_hashes
+
+    def manifest_path(self, s: dag.Stage) -> Path:
+        return self.manifest_dir / f"{s.name}.json"
+
+    def is_fresh(self, s: dag.Stage, key: str) -> bool:
+        path = self.manifest_path(s)
+        if not path.is_file():
+            return False
+        try:
+            rec = json.loads(path.read_text())
+        except json.JSONDecodeError:
+            return False
+        if rec.get("key") != key:
+            return False
+        return all(self.hashes.tree_hash(self._input_path(o)) == h for o, h in rec.get("outputs", {}).items()) \
+            and set(rec.get("outputs", {})) == set(s.outputs)
+
+    def run_stage(self, s: dag.Stage, force: bool = False) -> StageResult:
+        key, input_hashes = self.stage_key(s)
+        if not force and self.is_fresh(s, key):
+            print(f"[pag] {s.name}: up to date, skipped", file=sys.stderr)
+            return StageResult(s.name, "skipped")
+        inputs: dict[str, Any] = {}
+        for name in s.inputs + s.optional_inputs:
+            ds, path = dataset(name), self._input_path(name)
+            if not path.exists():
+                continue
+            inputs[name] = io.read_table(path, ds.schema) if ds.kind == "table" else path
+        staging = {o: io.staging_dir(self._input_path(o)) for o in s.outputs if dataset(o).kind == "dir"}
+        run_cfg = self.config["run"]
+        ctx = StageContext(stage=s.name, seq=self.seq, data_root=self.data_root, staging=staging,
+                           show_progress=self.show_progress, device=run_cfg.device,
+                           scheduler=run_cfg.scheduler or None)
+        print(f"[pag] {s.name}: running", file=sys.stderr)
+        t0 = time.perf_counter()
+        try:
+            outputs = s.module.run(inputs, self.config[s.name], ctx)
+            tables = [o for o in s.outputs if dataset(o).kind == "table"]
+            if not isinstance(outputs, dict) or sorted(outputs) != sorted(tables):
+                got = sorted(outputs) if isinstance(outputs, dict) else type(outputs).__name__
+                raise PipelineError(f"stage {s.name!r} returned {got}, expected tables {sorted(tables)}")
+            for name in tables:
+                if not isinstance(outputs[name], pd.DataFrame):
+                    raise PipelineError(f"stage {s.name!r} returned {type(outputs[name]).__name__} for {name!r}")
+                io.write_table(outputs[name], self._input_path(name), dataset(name).schema,
+                               metadata={"pag.stage": s.name, "pag.seq": self.seq})
+            for name, path in staging.items():
+                io.swap_dir(path, self._input_path(name))
+        except Exception:
+            for path in staging.values():
+                shutil.rmtree(path, ignore_errors=True)
+            raise
+        seconds = time.perf_counter() - t0
+        record = {"stage": s.name, "key": key, "seconds": round(seconds, 3), "inputs": input_hashes,
+                  "outputs": {o: self.hashes.tree_hash(self._input_path(o)) for o in s.outputs},
+                  "config": cfgmod.to_dict(self.config[s.name]), "summary": ctx.summary,
+                  "finished_unix": time.time()}
+        io.atomic_write_bytes(self.manifest_path(s), json.dumps(record, indent=1, default=str).encode())
+        self.hashes.save()
+        brief = ", ".join(f"{k}={v}" for k, v in ctx.summary.items() if k != "notes")
+        print(f"[pag] {s.name}: done in {seconds:.1f} s" + (f" ({brief})" if brief else ""), file=sys.stderr)
+        for note in ctx.summary.get("notes", []):
+            print(f"[pag] {s.name}: {note}", file=sys.stderr)
+        return StageResult(s.name, "ran", seconds, ctx.summary)

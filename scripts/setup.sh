@@ -1,0 +1,39 @@
+#!/usr/bin/env bash
+# Sets up a virtual environment in .venv with everything the project needs.
+# Idempotent: make calls it whenever pyproject.toml is newer than the install stamp.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+PYTHON=${PYTHON:-python3.11}
+command -v "$PYTHON" >/dev/null 2>&1 || PYTHON=python3
+if ! "$PYTHON" -c 'import sys; sys.exit(0 if sys.version_info[:2] == (3, 11) else 1)'; then
+    echo "error: Python 3.11 is required (found $("$PYTHON" --version 2>&1)); set PYTHON=/path/to/python3.11" >&2
+    exit 1
+fi
+
+# Open3D links against libusb-1.0 at import time.
+if ! ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0'; then
+    if [ "$(id -u)" = "0" ] && command -v apt-get >/dev/null 2>&1; then
+        echo "setup: installing libusb-1.0-0 (needed by Open3D)"
+        apt-get update -qq >/dev/null
+        DEBIAN_FRONTEND=noninteractive apt-get install -y -qq libusb-1.0-0 >/dev/null
+    else
+        echo "error: Open3D needs the system library libusb-1.0 (Debian/Ubuntu: sudo apt-get install libusb-1.0-0)" >&2
+        exit 1
+    fi
+fi
+
+if [ ! -x .venv/bin/python ]; then
+    echo "setup: creating .venv"
+    "$PYTHON" -m venv .venv
+fi
+.venv/bin/python -m pip install -q --upgrade pip
+# torch first, pinned: the CPU wheel on this machine's disk (a loose pin pulls a CUDA build).
+if ! .venv/bin/python -c 'import torch, sys; sys.exit(0 if torch.__version__.startswith("2.13.0") else 1)' 2>/dev/null; then
+    echo "setup: installing torch==2.13.0"
+    .venv/bin/python -m pip install -q torch==2.13.0
+fi
+echo "setup: installing the project and its dependencies"
+.venv/bin/python -m pip install -q -e '.[dev]'
+.venv/bin/python -c 'import open3d, torch, rosbags, pycolmap' || { echo "error: dependency import failed" >&2; exit 1; }
+echo "setup: done"
