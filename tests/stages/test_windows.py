@@ -1,0 +1,50 @@
+import pandas as pd
+import pytest
+
+from pipeline.stage import StageContext
+from stages import windows
+
+
+def frames(n, labelled):
+    return pd.DataFrame({"frame_id": range(n), "labelled": [i in labelled for i in range(n)]})
+
+
+def run(n, labelled, **cfg):
+    ctx = StageContext(stage="windows", seq="t", data_root=".", show_progress=False)
+    return windows.run({"frames": frames(n, labelled)}, windows.Config(**cfg), ctx)["windows"], ctx
+
+
+def test_one_window_per_labelled_frame_clipped_with_alternating_split():
+    w, ctx = run(30, {2, 15}, half_width=5)
+    assert sorted(w["window_id"].unique()) == [0, 1]
+    w0 = w[w.window_id == 0]
+    assert w0["frame_id"].tolist() == list(range(0, 8))      # clipped at the start
+    assert (w0.set_index("offset")["split"].loc[[-1, 1, 3]] == "train").all()
+    assert (w0.set_index("offset")["split"].loc[[-2, 0, 2]] == "val").all()
+    centre = w[w.is_center]
+    assert centre["frame_id"].tolist() == [2, 15]
+    assert ctx.summary["windows"] == 2
+
+
+def test_overlap_is_recorded():
+    w, ctx = run(30, {10, 14}, half_width=5)
+    n = w.drop_duplicates("frame_id").set_index("frame_id")["n_windows"]
+    assert n.loc[12] == 2 and n.loc[5] == 1
+    assert ctx.summary["frames_in_several_windows"] == len(range(9, 16))
+
+
+def test_unlabelled_sequence_gets_evenly_spaced_windows_without_eval_frame():
+    w, ctx = run(50, set(), half_width=5)
+    assert sorted(w["center_frame_id"].unique()) == [5, 15, 25, 35, 45]
+    assert not w["is_center"].any()
+    assert "no labelled frames" in ctx.summary["notes"][0]
+
+
+def test_max_windows_spreads_evenly():
+    w, _ = run(100, {10, 20, 30, 40, 50, 60, 70}, half_width=3, max_windows=3)
+    assert sorted(w["center_frame_id"].unique()) == [10, 40, 70]
+
+
+def test_bad_half_width():
+    with pytest.raises(ValueError, match="half_width must be >= 1"):
+        windows.Config(half_width=0)
