@@ -1,0 +1,26 @@
+"""window_metrics: per-window quality and cost of the NeRF fit."""
+import pyarrow as pa
+
+from schemas import col, table_schema
+
+SCHEMA = table_schema(
+    "window_metrics",
+    "One row per window: the NeRF's validation quality, its cost, and where its checkpoint is.",
+    col("window_id", pa.int32(), "window (windows.window_id)"),
+    col("center_frame_id", pa.int32(), "labelled centre frame"),
+    col("status", pa.string(), "'ok' or 'failed'"),
+    col("error", pa.string(), "why the window failed ('' if ok), with the training step"),
+    col("preset", pa.string(), "model preset (cpu, S, L)"),
+    col("device", pa.string(), "torch device the window was fitted on"),
+    col("threads", pa.int32(), "torch CPU threads used by the window's worker"),
+    col("n_train", pa.int32(), "training frames"),
+    col("n_val", pa.int32(), "validation frames"),
+    col("params", pa.int64(), "trainable parameters of the model (grids + decoders)"),
+    col("steps", pa.int32(), "optimisation steps run"),
+    col("fit_s", pa.float64(), "wall time of the fit", "s"),
+    col("render_s_per_image", pa.float64(), "wall time to render one full validation image", "s"),
+    col("samples_per_ray", pa.float64(), "mean samples evaluated per ray when rendering validation images", "samples"),
+    col("val_psnr", pa.float64(), "mean PSNR over the validation frames (poses registered to the frozen model)", "dB"),
+    col("train_psnr", pa.float64(), "mean PSNR over the training frames", "dB"),
+    col("checkpoint_path", pa.string(), "model checkpoint (torch.save), relative to data/; '' if failed"),
+)
