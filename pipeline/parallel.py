@@ -1,0 +1,122 @@
+"""Run independent tasks (one per NeRF window) on a dask.distributed cluster with live progress.
+
+Tasks report progress by calling `report(task_key, done, total, **info)` inside the worker, which puts
+a message on a distributed Queue; the caller's process drains it into one progress bar per task.
+A task that raises does not stop the others: its exception is returned in its slot.
+"""
+from __future__ import annotations
+
+import contextlib
+import os
+import time
+import uuid
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from typing import Any
+
+from tqdm.auto import tqdm
+
+
+@dataclass
+class TaskOutcome:
+    key: str
+    result: Any = None
+    error: BaseException | None = None
+    seconds: float = 0.0
+
+
+_QUEUE_NAME: str | None = None
+
+
+def report(key: str, done: int, total: int, **info: Any) -> None:
+    """Called inside a task: publish progress (no-op outside a cluster run)."""
+    name = os.environ.get("PAG_PROGRESS_QUEUE") or _QUEUE_NAME
+    if not name:
+        return
+    try:
+        from distributed import Queue, get_client
+
+        Queue(name, client=get_client()).put((key, done, total, info))
+    except Exception:  # progress must never break a fit
+        pass
+
+
+def _run_task(fn: Callable, payload: Any, queue_name: str, threads: int) -> tuple[Any, float]:
+    global _QUEUE_NAME
+    import torch
+
+    _QUEUE_NAME = queue_name
+    torch.set_num_threads(max(1, threads))
+    t0 = time.perf_counter()
+    try:
+        return fn(payload), time.perf_counter() - t0
+    finally:
+        _QUEUE_NAME = None
+
+
+def default_workers(n_tasks: int) -> int:
+    return max(1, min(n_tasks, os.cpu_count() or 1))
+
+
+@contextlib.contextmanager
+def client_for(scheduler: str | None, n_workers: int, threads_per_worker: int) -> Iterator[Any]:
+    """A Client on an existing scheduler, or on a local process cluster sized as asked."""
+    from distributed import Client, LocalCluster
+
+    if scheduler:
+        with Client(scheduler, timeout="30s") as client:
+            yield client
+        return
+    env = {"OMP_NUM_THREADS": str(threads_per_worker), "MKL_NUM_THREADS": str(threads_per_worker)}
+    with LocalCluster(n_workers=n_workers, threads_per_worker=1, processes=True, dashboard_address=None,
+                      silence_logs=40, env=env) as cluster, Client(cluster) as client:
+        yield client
+
+
+def map_tasks(fn: Callable[[Any], Any], payloads: dict[str, Any], n_workers: int = 0, threads_per_worker: int = 0,
+              scheduler: str | None = None, show_progress: bool = True, desc: str = "task") -> dict[str, TaskOutcome]:
+    """Run fn(payload) for every payload; returns outcomes by key. One task per worker at a time."""
+    from distributed import Queue, as_completed
+
+    n_workers = n_workers or default_workers(len(payloads))
+    threads = threads_per_worker or max(1, (os.cpu_count() or 1) // n_workers)
+    outcomes: dict[str, TaskOutcome] = {}
+    queue_name = f"pag-progress-{uuid.uuid4().hex[:8]}"
+    with client_for(scheduler, n_workers, threads) as client:
+        queue = Queue(queue_name, client=client)
+        futures = {client.submit(_run_task, fn, p, queue_name, threads, key=f"{desc}-{k}-{uuid.uuid4().hex[:6]}",
+                                 pure=False): k for k, p in payloads.items()}
+        bars = {k: tqdm(total=1, desc=f"{desc} {k}", position=i, leave=False, disable=not show_progress,
+                        dynamic_ncols=True) for i, k in enumerate(payloads)}
+
+        def drain() -> None:
+            with contextlib.suppress(Exception):
+                for key, done, total, info in queue.get(batch=True):
+                    bar = bars.get(key)
+                    if bar is not None:
+                        bar.total = total
+                        bar.n = done
+                        if info:
+                            bar.set_postfix({k: (f"{v:.3g}" if isinstance(v, float) else v) for k, v in info.items()},
+                                            refresh=False)
+                        bar.refresh()
+
+        pending = as_completed(list(futures))
+        while True:
+            drain()
+            finished = pending.next_batch(block=False) if not pending.is_empty() else []
+            for fut in finished:
+                key = futures[fut]
+                try:
+                    result, seconds = fut.result()
+                    outcomes[key] = TaskOutcome(key, result=result, seconds=seconds)
+                except Exception as err:  # keep going: the other tasks finish
+                    outcomes[key] = TaskOutcome(key, error=err)
+                bars[key].close()
+            if pending.is_empty() and len(outcomes) == len(futures):
+                break
+            time.sleep(0.3)
+        drain()
+        for bar in bars.values():
+            bar.close()
+    return outcomes
