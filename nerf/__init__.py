@@ -1,0 +1,1 @@
+"""The model library: encoding, field, render, poses, assignment, losses, trainer, metrics."""
