@@ -1,0 +1,59 @@
+import numpy as np
+import pytest
+import torch
+
+from nerf.assignment import OUTSIDE_COST, SlotWindow, along_track, assign, segment_costs
+
+
+def test_segment_costs_are_minus_mean_probability():
+    probs = torch.tensor([[0.1, 0.9, 0.0], [0.1, 0.5, 0.4], [0.0, 0.0, 1.0]])
+    cost = segment_costs(probs, torch.tensor([0, 0, 1]), 2)
+    assert torch.allclose(cost, -torch.tensor([[0.1, 0.7, 0.2], [0.0, 0.0, 1.0]]))
+
+
+def test_assignment_is_optimal_and_never_uses_stuff_slot():
+    cost = -np.array([[0.9, 0.8, 0.1, 0.1], [0.9, 0.7, 0.6, 0.0]])
+    assert assign(cost).tolist() == [1, 2]
+
+
+def test_equal_costs_and_more_segments_than_slots_stay_finite():
+    out = assign(np.zeros((5, 3)))
+    assert set(out) <= {1, 2} and len(out) == 5
+    out = assign(np.full((2, 4), np.nan))
+    assert sorted(out) != [] and np.all(out >= 1)
+
+
+def test_window_segments_one_frustum_apart_never_share_slots():
+    w = SlotWindow.for_scene(max_fruits_per_frustum=6, frustum_length_m=0.5, n_slots=41, margin=2)
+    for s in np.linspace(0, 3, 31):
+        a, b = w.allowed(np.array([s, s + 0.5]))
+        assert a.sum() == w.width and b.sum() == w.width
+        assert not (a & b).any()
+        assert not a[0] and not b[0]
+
+
+def test_window_forces_different_slots_for_far_apart_fruits():
+    # Two segments that both prefer slot 1 strongly, one frustum length apart.
+    w = SlotWindow.for_scene(4, 1.0, 17, margin=0)
+    cost = np.full((2, 17), -0.01)
+    cost[:, 1] = -0.99
+    allowed = w.allowed(np.array([0.0, 1.0]))
+    plain = assign(cost[:1]), assign(cost[1:])
+    assert plain[0][0] == plain[1][0] == 1          # without the window: the repeated ID
+    a0, a1 = assign(cost[:1], allowed[:1])[0], assign(cost[1:], allowed[1:])[0]
+    assert allowed[0, a0] and allowed[1, a1] and a0 != a1
+
+
+def test_too_few_slots_is_a_clear_error():
+    with pytest.raises(ValueError, match="too few for repeated-ID rejection"):
+        SlotWindow.for_scene(10, 0.5, 16)
+
+
+def test_outside_cost_is_finite_and_dominates():
+    assert np.isfinite(OUTSIDE_COST) and OUTSIDE_COST > 1
+
+
+def test_along_track_follows_the_trajectory_direction():
+    cams = np.stack([np.linspace(0, 1, 5), np.zeros(5), np.zeros(5)], 1)[::-1] + [0, 0.6, 0]
+    s = along_track(np.array([[1.0, 0.0, 0.2], [0.5, 1.0, 0.0]]), cams)
+    assert s == pytest.approx([0.0, 0.5])
