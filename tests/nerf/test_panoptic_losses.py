@@ -1,0 +1,47 @@
+import torch
+
+from nerf.panoptic_losses import consistency_loss, instance_loss, semantic_loss
+
+
+def integrate(*args):
+    from nerf.panoptic import integrate_probs
+    return integrate_probs(*args)
+
+
+def test_integration_example_and_detached_weights():
+    import pytest
+    pytest.importorskip("nerf.encoding")
+    logits = torch.tensor([[20.0, -20.0], [-20.0, 20.0]], requires_grad=True)
+    w = torch.tensor([0.5, 0.25], requires_grad=True)
+    p = integrate(logits, w, torch.tensor([0, 0]), 2)
+    assert torch.allclose(p[0], torch.tensor([2 / 3, 1 / 3]), atol=1e-6)
+    assert torch.allclose(p[1], torch.tensor([0.5, 0.5]))       # empty ray -> uniform
+    p[0, 0].backward()
+    assert w.grad is None and logits.grad is not None
+
+
+def test_semantic_loss_ignores_void_and_weights_by_confidence():
+    p = torch.tensor([[0.9, 0.1], [0.2, 0.8], [0.5, 0.5]])
+    labels = torch.tensor([0, 0, 255])
+    full = semantic_loss(p, labels, torch.tensor([1.0, 1.0, 1.0]))
+    only_first = semantic_loss(p, labels, torch.tensor([1.0, 0.0, 1.0]))
+    assert torch.isclose(only_first, -torch.log(torch.tensor(0.9)))
+    assert full > only_first
+
+
+def test_losses_stay_finite_on_zero_probabilities_and_empty_batches():
+    p = torch.tensor([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0]], requires_grad=True)
+    for loss in (semantic_loss(p, torch.tensor([1, 1]), torch.tensor([1.0, float("nan")])),
+                 instance_loss(p, torch.tensor([1, -1])),
+                 consistency_loss(p, torch.tensor([0, 0]), 1),
+                 instance_loss(p, torch.tensor([-1, -1])),
+                 semantic_loss(p, torch.tensor([255, 255]), torch.ones(2))):
+        assert torch.isfinite(loss)
+        loss.backward(retain_graph=True)
+    assert torch.isfinite(p.grad).all()
+
+
+def test_consistency_is_zero_for_uniform_segments():
+    p = torch.tensor([[0.2, 0.8], [0.2, 0.8], [0.9, 0.1]])
+    assert consistency_loss(p, torch.tensor([0, 0, -1]), 1) == 0
+    assert consistency_loss(p, torch.tensor([0, 0, 0]), 1) > 0
