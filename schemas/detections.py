@@ -14,7 +14,7 @@ SCHEMA = table_schema(
     col("class_id", pa.int32(), "semantic class of the segment"),
     col("score", pa.float64(), "detector confidence", "probability"),
     col("area_px", pa.int64(), "segment area", "px"),
-    col("near_depth_frac", pa.float64(), "share of the segment's pixels with valid depth within the depth filter's max_depth_m (NaN before depth_filter)", "fraction"),
+    col("near_depth_frac", pa.float64(), "share of the segment's pixels with valid depth within the depth filter's max_depth_m (null before depth_filter)", "fraction", nullable=True),
     col("kept", pa.bool_(), "true if the segment survives the depth filter (true before depth_filter)"),
     col("drop_reason", pa.string(), "why the segment was dropped ('' if kept), e.g. 'depth: 12% of pixels within 1.5 m'"),
 )
