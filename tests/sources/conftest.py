@@ -1,20 +1,10 @@
 """Fixtures: one tiny synthetic recording written as a PNG folder, a ROS 1 bag, ROS 2 sqlite3 and mcap bags."""
-import shutil
 from pathlib import Path
 
 import pytest
 
 from pipeline.stage import StageContext
 from stages import synth
-
-FIXTURES = Path(__file__).resolve().parents[2].parent / "shared" / "fixtures"
-
-
-def shared_fixture(rel: str) -> Path:
-    p = FIXTURES / rel
-    if not p.exists():
-        pytest.skip(f"shared fixture {p} not present (the shared/ folder beside the repository)")
-    return p
 
 
 @pytest.fixture(scope="session")
@@ -41,13 +31,3 @@ def ros2_bags(tiny_raw, tmp_path_factory) -> dict[str, Path]:
                 [], [], [], [])
         out[storage] = dst
     return out
-
-
-def copy_raw(src: Path, dst_root: Path, drop_png_layout: bool = False) -> Path:
-    """A copy of the raw folder (optionally with only the bag and the detector output)."""
-    dst = dst_root / "raw" / "t"
-    shutil.copytree(src, dst)
-    if drop_png_layout:
-        shutil.rmtree(dst / "rgb")
-        shutil.rmtree(dst / "depth")
-    return dst

@@ -7,7 +7,7 @@ import pandas as pd
 import pytest
 import yaml
 
-from conftest import copy_raw, shared_fixture
+from raw_helpers import copy_raw, shared_fixture
 from pipeline.stage import StageContext
 from sources.common import IngestError, pose_from_txyzq
 from sources.rosbag import RosBag, Topics
