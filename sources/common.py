@@ -115,7 +115,7 @@ def interpolate_poses(traj: Trajectory, at_ns: np.ndarray, tol_ns: int) -> tuple
     if len(s) > 1:
         i = np.clip(np.searchsorted(s, at), 1, len(s) - 1)
         gap = s[i] - s[i - 1]
-        inside = (at > s[0]) & (at < s[-1])
+        inside = (at > s[0]) & (at < s[-1]) & (s[i] != at)  # a stamp on a sample needs no interpolation
         ok &= ~(inside & (gap > 2 * tol_ns))
     t = (s - s[0]) / 1e9
     q = np.clip((at - s[0]) / 1e9, t[0], t[-1])

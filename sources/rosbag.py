@@ -104,6 +104,22 @@ def _transform(tf) -> np.ndarray:
     return pose_from_txyzq(np.array([t.x, t.y, t.z, q.x, q.y, q.z, q.w]))
 
 
+def chain_transform(tfs: dict[tuple[str, str], np.ndarray], parent: str, child: str) -> np.ndarray | None:
+    """T_parent_child through a tree of static transforms keyed (parent, child), e.g. base_link ->
+    camera_link -> camera_color_frame -> camera_color_optical_frame as a RealSense driver publishes it.
+    Walks from `child` up its parents: T_parent_child = T_parent_a @ T_a_b @ ... @ T_z_child. None if the
+    frames are not connected."""
+    up = {c: (p, t) for (p, c), t in tfs.items()}
+    out, frame, seen = np.eye(4), child, set()
+    while frame != parent:
+        if frame not in up or frame in seen:
+            return None
+        seen.add(frame)
+        frame, t = up[frame]
+        out = t @ out
+    return out
+
+
 class RosBag(FrameSource):
     def __init__(self, path: Path, topics: Topics, params_fallback: Path | None = None):
         self.path = path
@@ -152,9 +168,9 @@ class RosBag(FrameSource):
         else:
             raise IngestError(f"bag {path}: no CameraInfo on {topics.camera_info} and no params.yaml beside it; "
                               f"topics: {available}")
-        key = (topics.base_frame, topics.camera_frame)
-        if key in tfs:
-            t_rc = tfs[key]
+        chained = chain_transform(tfs, topics.base_frame, topics.camera_frame)
+        if chained is not None:
+            t_rc = chained
         elif params_fallback is not None and params_fallback.is_file():
             t_rc = read_params(params_fallback)[1]
             counts["extrinsic_from_params_yaml"] = 1
@@ -189,22 +205,41 @@ class RosBag(FrameSource):
         rgb_buf: dict[int, np.ndarray] = {}
         depth_buf: dict[int, np.ndarray] = {}
         done: set[int] = set()
+        failed: dict[int, str] = {}
         with open_reader(self.path) as reader:
             conns = [c for c in reader.connections if c.topic in (self.topics.color, self.topics.depth)]
             for conn, t, raw in reader.messages(connections=conns):
                 msg = reader.deserialize(raw, conn.msgtype)
                 s = header_stamp(msg, t)
                 if conn.topic == self.topics.color and s in want_c and want_c[s] not in done:
-                    arr = image_to_array(msg, conn.topic, s)
-                    rgb_buf[want_c[s]] = np.repeat(arr[:, :, None], 3, 2) if arr.ndim == 2 else arr.astype(np.uint8)
+                    try:
+                        arr = image_to_array(msg, conn.topic, s)
+                        rgb_buf[want_c[s]] = np.repeat(arr[:, :, None], 3, 2) if arr.ndim == 2 else \
+                            arr.astype(np.uint8)
+                    except IngestError as err:
+                        failed.setdefault(want_c[s], str(err))
                 elif conn.topic == self.topics.depth and s in want_d:
-                    arr = image_to_array(msg, conn.topic, s)
-                    if arr.dtype == np.uint16:
-                        d = arr.astype(np.float32) * 0.001
-                    else:
-                        d = np.where(np.isfinite(arr) & (arr > 0), arr, 0).astype(np.float32)
-                    for c in want_d[s]:
-                        depth_buf[c] = d
+                    users = [c for c in want_d[s] if c not in done]
+                    try:
+                        arr = image_to_array(msg, conn.topic, s) if users else None
+                    except IngestError as err:
+                        for c in users:
+                            failed.setdefault(c, str(err))
+                        users = []
+                    if users:
+                        if arr.dtype == np.uint16:
+                            d = arr.astype(np.float32) * 0.001
+                        else:
+                            d = np.where(np.isfinite(arr) & (arr > 0), arr, 0).astype(np.float32)
+                        for c in users:
+                            depth_buf[c] = d
+                # a frame whose colour or depth message cannot be decoded comes back with the error (the
+                # caller skips and counts it, or stops, per ingest.on_bad_image)
+                for c in list(failed):
+                    rgb_buf.pop(c, None)
+                    depth_buf.pop(c, None)
+                    done.add(c)
+                    yield c, None, None, failed.pop(c)
                 for c in [c for c in rgb_buf if c in depth_buf]:
                     yield c, rgb_buf.pop(c), depth_buf.pop(c), ""
                     done.add(c)
