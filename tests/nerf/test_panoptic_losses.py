@@ -1,16 +1,10 @@
 import torch
 
+from nerf.panoptic import integrate_probs as integrate
 from nerf.panoptic_losses import consistency_loss, instance_loss, semantic_loss
 
 
-def integrate(*args):
-    from nerf.panoptic import integrate_probs
-    return integrate_probs(*args)
-
-
 def test_integration_example_and_detached_weights():
-    import pytest
-    pytest.importorskip("nerf.encoding")
     logits = torch.tensor([[20.0, -20.0], [-20.0, 20.0]], requires_grad=True)
     w = torch.tensor([0.5, 0.25], requires_grad=True)
     p = integrate(logits, w, torch.tensor([0, 0]), 2)
