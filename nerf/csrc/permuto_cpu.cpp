@@ -341,7 +341,7 @@ double random_reads(int64_t n_points, int64_t n_levels, int64_t capacity, int64_
     for (int64_t n = 0; n < n_points; ++n) {
       float s = 0.f;
       for (int64_t k = 0; k < reads; ++k) {
-        const uint32_t h = hash3((int32_t)n, (int32_t)(l + 7 * k), (int32_t)k, mask);
+        const uint32_t h = hash3((int32_t)k, (int32_t)n, (int32_t)(l + 7 * k), mask);  // n scattered by the prime
         for (int64_t f = 0; f < n_features; ++f) s += tl[(int64_t)h * n_features + f];
       }
       total += s;
