@@ -16,6 +16,7 @@ STAGE_ORDER: tuple[str, ...] = (
     "ingest",
     "depth_filter",
     "windows",
+    "nerf_fit",
 )
 
 SOURCE_DATASETS: frozenset[str] = frozenset({"raw"})

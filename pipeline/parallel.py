@@ -7,6 +7,7 @@ A task that raises does not stop the others: its exception is returned in its sl
 from __future__ import annotations
 
 import contextlib
+import logging
 import os
 import time
 import uuid
@@ -63,6 +64,8 @@ def client_for(scheduler: str | None, n_workers: int, threads_per_worker: int) -
     """A Client on an existing scheduler, or on a local process cluster sized as asked."""
     from distributed import Client, LocalCluster
 
+    for name in ("distributed", "distributed.nanny", "distributed.scheduler", "distributed.core"):
+        logging.getLogger(name).setLevel(logging.ERROR)
     if scheduler:
         with Client(scheduler, timeout="30s") as client:
             yield client

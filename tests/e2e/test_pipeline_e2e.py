@@ -7,7 +7,8 @@ from pipeline.dag import STAGE_ORDER
 
 TINY = ["--set", "synth.n_frames=12", "--set", "synth.width=64", "--set", "synth.height=40",
         "--set", "synth.n_labelled=2", "--set", "synth.supersample=1", "--set", "synth.workers=1",
-        "--set", "windows.half_width=3"]
+        "--set", "windows.half_width=3", "--set", "nerf_fit.model.steps=20", "--set", "nerf_fit.model.rays_per_step=128",
+        "--set", "nerf_fit.model.n_levels=4", "--set", "nerf_fit.model.log2_capacity=12"]
 
 
 @pytest.fixture(scope="module")
@@ -25,6 +26,11 @@ def test_every_stage_ran_and_wrote_its_outputs(run_dir):
     assert (pd.read_parquet(interim / "detections_filtered.parquet")["kept"]).any()
     w = pd.read_parquet(interim / "windows.parquet")
     assert w["window_id"].nunique() == 2
+    metrics = pd.read_parquet(run_dir / "processed" / "synth_tiny" / "window_metrics.parquet")
+    assert list(metrics["status"]) == ["ok", "ok"] and (metrics["val_psnr"] > 5).all()
+    poses = pd.read_parquet(run_dir / "processed" / "synth_tiny" / "window_poses.parquet")
+    assert set(poses["window_id"]) == {0, 1}
+    assert (run_dir / metrics["checkpoint_path"].iloc[0]).is_file()
     for stage in STAGE_ORDER:
         assert (interim / "_manifest" / f"{stage}.json").is_file(), stage
     assert (run_dir / "processed" / "synth_tiny" / "config.resolved.yaml").is_file()

@@ -1,0 +1,84 @@
+"""Model and training settings, with the presets L, S and cpu."""
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from typing import Literal
+
+Preset = Literal["cpu", "S", "L"]
+
+
+@dataclass(frozen=True)
+class NerfConfig:
+    preset: Preset = "cpu"
+    """model size preset: cpu (default run on 2 cores), S (9 levels, 2^15) or L (21 levels, 2^18)."""
+    n_levels: int = 10
+    """levels of the colour grid."""
+    n_features: int = 2
+    """features per level."""
+    log2_capacity: int = 16
+    """log2 of the colour grid's hash table size per level."""
+    log2_capacity_delta: int = 12
+    """log2 of the panoptic delta grid's table size per level."""
+    finest_res_m: float = 0.004
+    """finest lattice scale, metres."""
+    coarsest_res_m: float = 0.5
+    """coarsest lattice scale, metres."""
+    hidden: int = 64
+    """width of the decoders' hidden layers."""
+    steps: int = 1500
+    """optimisation steps."""
+    rays_per_step: int = 1024
+    """rays per step."""
+    lr_grid: float = 1e-2
+    """Adam learning rate of the hash tables."""
+    lr_mlp: float = 3e-3
+    """Adam learning rate of the decoders."""
+    lr_pose: float = 1e-4
+    """Adam learning rate of the pose corrections (normalised scene units; rotation 6D entries)."""
+    pose_warmup_steps: int = 200
+    """steps before the poses start to move (let the geometry form first)."""
+    refine_poses: bool = True
+    """optimise the train poses online from the colour loss."""
+    val_register_every: int = 100
+    """register the validation poses to the frozen model every this many steps."""
+    val_register_steps: int = 8
+    """steps of each validation-pose registration."""
+    depth_loss_weight: float = 0.1
+    """weight of the depth loss (only on rays whose poses are detached, so it never moves poses)."""
+    near_m: float = 0.15
+    """near plane."""
+    far_m: float = 3.5
+    """far plane (covers the far row and the back wall)."""
+    step_scale: float = 3.0
+    """marching step = step_scale * pixel footprint at the sample's depth (cone marching)."""
+    max_samples_per_ray: int = 96
+    """cap on samples per ray during training."""
+    occupancy_res: int = 128
+    """occupancy grid cells along the longest side of the window's bounds."""
+    occupancy_dilate: int = 1
+    """cells added around the depth-initialised occupancy (covers pose and depth noise)."""
+    occupancy_every: int = 64
+    """update the occupancy grid (EMA of density, pruning) every this many steps."""
+    occupancy_threshold: float = 0.01
+    """a cell stays occupied while its EMA opacity over one marching step exceeds this."""
+    skip_empty: bool = True
+    """sample only in occupied cells and stop rays early (off = dense marching, for benchmarks)."""
+    early_stop_transmittance: float = 1e-3
+    """rendering stops a ray once its transmittance drops below this."""
+    chunk_rays: int = 8192
+    """rays per chunk when rendering images."""
+    seed: int = 0
+    """random seed of the fit."""
+
+
+PRESETS: dict[str, dict] = {
+    "cpu": {},
+    "S": dict(n_levels=9, log2_capacity=15, log2_capacity_delta=9, finest_res_m=0.003, steps=3000, rays_per_step=2048),
+    "L": dict(n_levels=21, log2_capacity=18, log2_capacity_delta=18, finest_res_m=0.001, steps=6000, rays_per_step=4096),
+}
+
+
+def preset(name: str, **overrides) -> NerfConfig:
+    if name not in PRESETS:
+        raise ValueError(f"unknown preset {name!r}; presets: {sorted(PRESETS)}")
+    return replace(NerfConfig(preset=name, **PRESETS[name]), **overrides)  # type: ignore[arg-type]

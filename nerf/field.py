@@ -1,0 +1,65 @@
+"""The radiance field: colour grid G_c -> density decoder -> colour decoder (view-dependent).
+
+    h = D(G_c(x))            16 outputs, 1 hidden layer of `hidden` (ReLU)
+    sigma = exp(min(h_0, 15))  (finite; an exponential with a clamped input)
+    rgb = sigmoid(C([h, SH(d)]))  spherical harmonics of degree 2 for the view direction d
+"""
+from __future__ import annotations
+
+import torch
+from torch import Tensor, nn
+
+from nerf.config import NerfConfig
+from nerf.encoding import PermutoEncoding
+
+MAX_LOG_DENSITY = 15.0
+
+
+def sh_deg2(d: Tensor) -> Tensor:
+    """Real spherical harmonics up to degree 2 of unit directions [N, 3] -> [N, 9]."""
+    x, y, z = d.unbind(-1)
+    return torch.stack([
+        torch.full_like(x, 0.28209479), 0.48860251 * y, 0.48860251 * z, 0.48860251 * x,
+        1.09254843 * x * y, 1.09254843 * y * z, 0.31539157 * (3 * z * z - 1), 1.09254843 * x * z,
+        0.54627421 * (x * x - y * y)], -1)
+
+
+def mlp(n_in: int, hidden: int, n_hidden: int, n_out: int) -> nn.Sequential:
+    layers: list[nn.Module] = []
+    d = n_in
+    for _ in range(n_hidden):
+        layers += [nn.Linear(d, hidden), nn.ReLU(inplace=True)]
+        d = hidden
+    layers.append(nn.Linear(d, n_out))
+    return nn.Sequential(*layers)
+
+
+class RadianceField(nn.Module):
+    def __init__(self, cfg: NerfConfig, scene_scale_m: float):
+        """`scene_scale_m`: metres per normalised unit (lattice scales are given in metres)."""
+        super().__init__()
+        self.grid = PermutoEncoding(n_levels=cfg.n_levels, n_features=cfg.n_features, log2_capacity=cfg.log2_capacity,
+                                    coarsest_scale=cfg.coarsest_res_m / scene_scale_m,
+                                    finest_scale=cfg.finest_res_m / scene_scale_m, seed=cfg.seed)
+        self.density_net = mlp(self.grid.out_dim, cfg.hidden, 1, 16)
+        self.color_net = mlp(16 + 9, cfg.hidden, 1, 3)
+
+    def grid_features(self, x: Tensor) -> Tensor:
+        """g_c(x): colour-grid features [N, L*F] (the panoptic delta grid builds on these)."""
+        return self.grid(x)
+
+    def density(self, x: Tensor) -> Tensor:
+        h = self.density_net(self.grid(x))
+        return torch.exp(h[:, 0].clamp(max=MAX_LOG_DENSITY))
+
+    def forward(self, x: Tensor, d: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """x [N, 3] normalised positions, d [N, 3] unit directions -> sigma [N], rgb [N, 3], g_c [N, L*F]."""
+        g = self.grid(x)
+        h = self.density_net(g)
+        sigma = torch.exp(h[:, 0].clamp(max=MAX_LOG_DENSITY))
+        rgb = torch.sigmoid(self.color_net(torch.cat([h, sh_deg2(d)], -1)))
+        return sigma, rgb, g
+
+
+def param_count(module: nn.Module) -> int:
+    return sum(p.numel() for p in module.parameters() if p.requires_grad)

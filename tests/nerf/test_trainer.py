@@ -1,0 +1,61 @@
+import sys
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+sys.path.insert(0, str(Path(__file__).parent))
+from scene_fixture import tiny_window  # noqa: E402
+
+from nerf.config import preset  # noqa: E402
+from nerf.trainer import NerfModel, NonFiniteLoss, fit_window  # noqa: E402
+
+FAST = dict(steps=60, rays_per_step=256, occupancy_every=20, val_register_every=30, val_register_steps=2,
+            pose_warmup_steps=20, n_levels=6, log2_capacity=12)
+
+
+@pytest.fixture(scope="module")
+def window():
+    return tiny_window()
+
+
+def test_fit_learns_the_window_and_reloads(window, tmp_path):
+    res = fit_window(window, preset("cpu", **FAST))
+    first, last = res.history[0]["psnr"], res.history[-1]["psnr"]
+    assert last > first + 3
+    assert np.isfinite(list(res.val_psnr.values())).all() and res.samples_per_ray > 0
+    assert res.poses_c2w.shape == (6, 4, 4) and np.isfinite(res.poses_c2w).all()
+    torch.save(res.model.state(), tmp_path / "ckpt.pt")
+    again = NerfModel.from_state(torch.load(tmp_path / "ckpt.pt", weights_only=False))
+    a = res.model.render_image(1)["rgb"]
+    b = again.render_image(1)["rgb"]
+    assert torch.allclose(a, b, atol=1e-5)
+
+
+def test_skipping_evaluates_fewer_samples_than_dense_marching(window):
+    cfg = preset("cpu", **FAST, refine_poses=False)
+    skip = fit_window(window, replace(cfg, steps=30))
+    dense = fit_window(window, replace(cfg, steps=30, skip_empty=False))
+    assert skip.samples_per_ray * 2 < dense.samples_per_ray
+
+
+def test_non_finite_loss_names_the_step(window, monkeypatch):
+    import nerf.field as field_mod
+
+    real = field_mod.RadianceField.forward
+
+    def poisoned(self, x, d):
+        sigma, rgb, g = real(self, x, d)
+        return sigma, rgb * float("nan"), g
+
+    monkeypatch.setattr(field_mod.RadianceField, "forward", poisoned)
+    with pytest.raises(NonFiniteLoss, match="at step 0"):
+        fit_window(window, preset("cpu", **FAST))
+
+
+def test_fixed_poses_stay_fixed_when_refinement_is_off(window):
+    cfg = preset("cpu", **{**FAST, "steps": 25, "pose_warmup_steps": 0, "lr_pose": 1e-2})
+    res = fit_window(window, replace(cfg, refine_poses=False))
+    assert np.allclose(res.poses_c2w, window.poses_c2w, atol=1e-6)
