@@ -51,6 +51,13 @@ class NerfConfig:
     """far plane (covers the far row and the back wall)."""
     step_scale: float = 3.0
     """marching step = step_scale * pixel footprint at the sample's depth (cone marching)."""
+    train_sampling: Literal["depth", "occupancy"] = "occupancy"
+    """training samples: 'depth' = a band around the sensor depth plus free-space samples in front
+    (RGB-D rays), 'occupancy' = cone marching through the occupancy grid like rendering."""
+    surface_samples: int = 8
+    """samples in the band around the sensor depth (train_sampling = depth)."""
+    free_samples: int = 4
+    """samples in the free space in front of the sensor depth (train_sampling = depth)."""
     max_samples_per_ray: int = 96
     """cap on samples per ray during training."""
     occupancy_res: int = 128

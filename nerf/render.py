@@ -87,6 +87,41 @@ def march(origins: Tensor, dirs: Tensor, edges: Tensor, occupied_fn, jitter: boo
     return pack(t, occ, edges, dirs, first, max_per_ray)
 
 
+def depth_guided(depth: Tensor, dirs: Tensor, n_surface: int, n_free: int, near: float, far: float,
+                 band_rel: float = 0.04, band_min_m: float = 0.015, jitter: bool = True) -> Samples:
+    """Training samples for RGB-D rays: `n_surface` stratified samples in a band around the sensor depth
+    [d - b, d + b/2] (b = max(band_min_m, band_rel * d)) and `n_free` in the free space [near, d - b] in
+    front of it; rays without valid depth (0) get all samples stratified over [near, far]. Every ray has
+    the same number of samples, sorted by depth. depth [R] metres (z), dirs [R, 3] -> Samples."""
+    r = depth.shape[0]
+    dev = depth.device
+    valid = depth > near
+    b = torch.clamp(depth * band_rel, min=band_min_m)
+    s_lo = torch.where(valid, depth - b, torch.full_like(depth, near)).clamp(min=near)
+    s_hi = torch.where(valid, depth + 0.5 * b, torch.full_like(depth, far))
+    f_hi = torch.where(valid, s_lo, torch.full_like(depth, near))
+
+    def strat(lo: Tensor, hi: Tensor, n: int) -> Tensor:
+        if n == 0:
+            return torch.zeros(r, 0, device=dev)
+        u = (torch.arange(n, device=dev) + (torch.rand(r, n, device=dev) if jitter else 0.5)) / n
+        return lo[:, None] + (hi - lo)[:, None] * u
+
+    # invalid rays: spread all samples over [near, far]
+    free = strat(torch.full_like(depth, near), f_hi, n_free)
+    surf = strat(s_lo, s_hi, n_surface)
+    t = torch.cat([free, surf], 1)
+    t_inv = strat(torch.full_like(depth, near), torch.full_like(depth, far), n_free + n_surface)
+    t = torch.where(valid[:, None], t, t_inv)
+    t, _ = torch.sort(t, 1)
+    gaps = torch.diff(t, dim=1)
+    last = (s_hi - s_lo)[:, None] / max(n_surface, 1)
+    delta = torch.cat([gaps, last], 1) * dirs.norm(dim=-1, keepdim=True)
+    n = t.shape[1]
+    ray_index = torch.arange(r, device=dev).repeat_interleave(n)
+    return Samples(ray_index, t.reshape(-1), delta.reshape(-1).clamp_min(1e-6), r)
+
+
 def composite_weights(sigma: Tensor, delta: Tensor, ray_index: Tensor, n_rays: int) -> tuple[Tensor, Tensor]:
     """Per-sample weights w [S] and per-ray transmittance left after the samples [R]. Packed,
     ray_index non-decreasing; exclusive cumulative sum per ray."""

@@ -19,7 +19,8 @@ from nerf.config import NerfConfig
 from nerf.field import RadianceField, param_count
 from nerf.occupancy import OccupancyGrid
 from nerf.poses import PoseCorrection
-from nerf.render import Samples, accumulate, candidates, composite_weights, cone_steps, march, pack, pixel_rays
+from nerf.render import (Samples, accumulate, candidates, composite_weights, cone_steps, depth_guided, march, pack,
+                         pixel_rays)
 
 
 class NonFiniteLoss(FloatingPointError):
@@ -260,7 +261,10 @@ def fit_window(data: WindowData, cfg: NerfConfig, device: str = "cpu",
         dgt = depths[frames, v, u]
         # behind an opaque surface nothing is visible: stop valid-depth rays a margin past the sensor depth
         t_max = torch.where(dgt > 0, dgt * 1.05 + 0.05, torch.full_like(dgt, cfg.far_m))
-        s = march(o, d, edges, occ_fn, jitter=True, max_per_ray=cfg.max_samples_per_ray, t_max=t_max)
+        if cfg.train_sampling == "depth":
+            s = depth_guided(dgt, d, cfg.surface_samples, cfg.free_samples, cfg.near_m, cfg.far_m)
+        else:
+            s = march(o, d, edges, occ_fn, jitter=True, max_per_ray=cfg.max_samples_per_ray, t_max=t_max)
         n_samples_total += len(s)
         sigma, col, _, _ = model.shade(o, d, s)
         wts, left = composite_weights(sigma, s.delta, s.ray_index, s.n_rays)

@@ -58,3 +58,14 @@ def test_rays_have_unit_z_in_camera_and_march_skips_empty():
     slab = march(o, d, edges, lambda p: (p[:, 2] > 1.0) & (p[:, 2] < 1.2), jitter=False)
     assert len(full) == len(edges) - 1
     assert 0 < len(slab) < len(full) / 5 and ((slab.t_mid > 1.0) & (slab.t_mid < 1.2)).all()
+
+
+def test_depth_guided_samples_sit_around_the_sensor_depth():
+    from nerf.render import depth_guided
+    depth = torch.tensor([1.0, 0.0, 2.5])
+    dirs = torch.tensor([[0.0, 0, 1], [0.1, 0, 1], [0, 0.2, 1]])
+    s = depth_guided(depth, dirs, n_surface=6, n_free=3, near=0.1, far=3.0, jitter=False)
+    t = s.t_mid.reshape(3, 9)
+    assert ((t[0, 3:] > 0.95) & (t[0, 3:] < 1.03)).all() and (t[0, :3] < 0.96).all()
+    assert t[1].min() >= 0.1 and t[1].max() <= 3.0 and t[1].max() > 2.5     # no depth: whole range
+    assert (torch.diff(t, dim=1) >= 0).all() and (s.delta > 0).all()
