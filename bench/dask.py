@@ -12,7 +12,7 @@ import tempfile
 
 import pandas as pd
 
-from bench.common import write_parquet
+from bench._common import write_parquet
 from pipeline import parallel
 from pipeline.io import read_table
 from stages.nerf_fit import Config, ModelOverrides, fit_one, model_config

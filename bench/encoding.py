@@ -13,7 +13,7 @@ import numpy as np
 import pandas as pd
 import torch
 
-from bench.common import bar_plot, interleaved_medians, median, write_parquet
+from bench._common import bar_plot, interleaved_medians, median, write_parquet
 from nerf._ext import load_permuto_ext
 from nerf.encoding import CubicHashEncoding, PermutoEncoding
 

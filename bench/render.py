@@ -14,7 +14,7 @@ import numpy as np
 import pandas as pd
 import torch
 
-from bench.common import bar_plot, write_parquet
+from bench._common import bar_plot, write_parquet
 from nerf.config import preset
 from nerf.trainer import fit_window
 from pipeline.io import read_table
