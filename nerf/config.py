@@ -25,8 +25,8 @@ class NerfConfig:
     """coarsest lattice scale, metres."""
     hidden: int = 64
     """width of the decoders' hidden layers."""
-    steps: int = 1500
-    """optimisation steps."""
+    steps: int = 600
+    """optimisation steps (the cpu preset is sized for a few minutes per window on one core)."""
     rays_per_step: int = 1024
     """rays per step."""
     lr_grid: float = 1e-2
