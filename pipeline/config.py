@@ -68,7 +68,7 @@ def _coerce(value: Any, tp: Any, where: str) -> Any:
         if origin is tuple and args:
             if len(args) != len(value):
                 raise ConfigError(f"{where}: expected {len(args)} values, got {len(value)}")
-            return tuple(_coerce(v, a, where) for v, a in zip(args, value))
+            return tuple(_coerce(v, a, where) for v, a in zip(value, args))
         return origin(value)
     if dataclasses.is_dataclass(tp):
         if isinstance(value, tp):

@@ -1,192 +1,337 @@
-"""Generate the synthetic glasshouse row, with exact ground truth, in the formats a real recording has."""
+"""Generate a synthetic glasshouse sweet-pepper row, with exact ground truth, in the formats a real recording has."""
 from __future__ import annotations
 
 import os
-from concurrent.futures import ProcessPoolExecutor
+from collections import deque
+from collections.abc import Callable, Iterable, Iterator
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass
+from typing import TypeVar
 
-import multiprocessing as mp
 import numpy as np
 import pandas as pd
 import yaml
 
+from pipeline.images import write_png
 from pipeline.stage import StageContext
-from synthetic import detector, scene, trajectory, writers
+from sources.common import depth_to_mm
+from synthetic import detector, render, scene, trajectory, writers
 
 INPUTS: tuple[str, ...] = ()
 OUTPUTS = ("raw",)
 
-T0_NS = 1_600_000_000_000_000_000
+FIRST_STAMP_NS = 1_600_000_000_000_000_000
+"""Stamp of the first camera frame; frame i is at FIRST_STAMP_NS + round(i * 1e9 / fps)."""
+ODOM_FRAME, BASE_FRAME, CAMERA_FRAME = "odom", "base_link", "camera_color_optical_frame"
+TOPICS = {"color": "/camera/color/image_raw", "depth": "/camera/aligned_depth_to_color/image_raw",
+          "info": "/camera/color/camera_info", "odom": "/odom", "tf_static": "/tf_static"}
 
 
 @dataclass(frozen=True)
 class Config:
     seed: int = 0
-    """random seed: every knob below changes the row deterministically for a given seed."""
+    """random seed: the same settings and seed give byte-identical files; every knob below is deterministic."""
     n_frames: int = 120
-    """camera frames in the row."""
+    """camera frames in the row (120 at 15 fps and 0.2 m/s = 1.6 m of row)."""
     width: int = 320
     """image width in pixels."""
     height: int = 180
     """image height in pixels."""
     fov_x_deg: float = 69.0
-    """horizontal field of view (RealSense D435 colour: 69 deg)."""
+    """horizontal field of view in degrees (RealSense D435 colour: 69); square pixels, centred principal point."""
     fps: float = 15.0
-    """camera frame rate."""
+    """camera frame rate in Hz."""
     speed_m_per_s: float = 0.2
-    """robot speed along the row."""
-    camera_height_m: float = 0.7
-    """camera height above the floor."""
-    camera_distance_m: float = 0.5
-    """distance from the camera to the near row's plant line."""
-    far_row_distance_m: float = 1.9
-    """distance from the camera to the far row (beyond the 1.5 m depth filter)."""
+    """mean robot speed along the row."""
+    base_height_m: float = 0.4
+    """height of base_link above the floor (the odometry's z)."""
+    camera_mast_m: float = 0.35
+    """camera height above base_link (camera height above the floor = base_height_m + camera_mast_m)."""
+    camera_lateral_m: float = 0.1
+    """camera offset from base_link towards the row (+y)."""
+    camera_distance_m: float = 0.6
+    """distance from the camera to the near row's stem line."""
+    far_row_distance_m: float = 2.0
+    """distance from the camera to the far row's stem line (beyond the 1.5 m depth range); its fruits are
+    in the ground truth with near_row = False, its foliage is background."""
     fruits_per_m: float = 12.0
-    """fruits per metre of row (near and far rows alike)."""
-    odom_drift_m_per_m: float = 0.03
-    """odometry scale error: accumulated position error per metre travelled."""
-    odom_yaw_drift_deg_per_m: float = 2.0
-    """odometry heading drift per metre travelled."""
-    odom_noise_m: float = 0.002
-    """odometry random-walk noise, metres per sqrt(metre) travelled."""
+    """fruits per metre of row, over the stretch of each row that the camera sees (near and far alike)."""
+    ripeness_mix: tuple[float, ...] = (0.45, 0.2, 0.35)
+    """relative shares of green (class 2), mixed (3) and red (4) fruits."""
+    plant_spacing_m: float = 0.25
+    """distance between stems along a row."""
+    leaf_node_spacing_m: float = 0.06
+    """mean vertical distance between leaf nodes on a stem (smaller = denser canopy)."""
+    leaf_size: float = 1.0
+    """scale of the leaves (1 = 10-19 cm long)."""
+    texture_scale: float = 1.0
+    """scale of every procedural texture's features (smaller = finer detail)."""
     odom_rate_hz: float = 50.0
-    """odometry message rate."""
+    """odometry sample rate; odometry starts 0.2 s before the first frame and ends 0.2 s after the last."""
+    odom_drift_m_per_m: float = 0.03
+    """odometry translation drift (scale and sideways) accumulated per metre driven."""
+    odom_yaw_drift_deg_per_m: float = 2.0
+    """odometry heading drift accumulated per metre driven."""
+    odom_noise_m: float = 0.002
+    """white noise (standard deviation) on the odometry x and y."""
     det_miss_rate: float = 0.15
-    """share of visible fruits the detector misses (more for small, occluded ones)."""
+    """probability that the detector misses a visible fruit; fully visible fruits are missed less, occluded or
+    cut-off ones more: 1 - (1 - rate)^(0.5 + 1.5 * hidden share)."""
     det_false_pos_rate: float = 0.3
-    """expected false-positive fruit segments per frame."""
+    """expected false-positive fruit segments per frame (blobs on leaves, low score)."""
     det_boundary_px: int = 2
-    """detected masks are eroded or dilated by up to this many pixels."""
+    """detected mask boundaries move in or out by a smooth offset of up to this many pixels."""
     det_merge_rate: float = 0.05
-    """chance that a detected fruit is merged with a touching neighbour."""
+    """probability that a detected fruit is merged with a touching neighbour into one segment."""
     det_class_confusion_rate: float = 0.05
-    """chance that a detected fruit gets a neighbouring ripeness class."""
+    """probability that a detected fruit gets a neighbouring ripeness class."""
+    det_void_rate: float = 0.03
+    """share of detector segment-border pixels left void (255) in the semantic PNG."""
+    det_min_area_px: int = 12
+    """detector segments smaller than this many pixels are dropped."""
     n_labelled: int = 3
-    """sparse labelled frames (ground-truth annotations), spread along the row."""
+    """ground-truth labelled frames (annotations.json, seg/), evenly spread, never the first or last frame."""
     supersample: int = 2
-    """anti-aliasing: rays per pixel side for the colour image."""
+    """colour anti-aliasing: 1 = the pixel-centre ray only; 2 = centre plus the 4 pixel corners shared with the
+    neighbours (quincunx, about 2 rays per pixel); s >= 3 = an s x s grid per pixel. Depth and labels always
+    come from the pixel-centre ray."""
     write_bag: bool = True
-    """also write the recording as a ROS 1 bag <SEQ>.bag."""
+    """also write the recording as a ROS 1 bag <SEQ>.bag (pixel-identical to the PNGs)."""
     workers: int = 0
-    """render processes (0 = one per CPU core, at most 4)."""
+    """render threads (0 = one per CPU core, at most 4); the output does not depend on it."""
 
     def __post_init__(self) -> None:
-        for name in ("n_frames", "width", "height", "n_labelled", "supersample"):
-            if getattr(self, name) < (1 if name != "n_labelled" else 0):
-                raise ValueError(f"synth.{name} must be positive, got {getattr(self, name)}")
-        for name in ("det_miss_rate", "det_merge_rate", "det_class_confusion_rate"):
+        positive = ("n_frames", "width", "height", "fps", "speed_m_per_s", "camera_distance_m", "odom_rate_hz",
+                    "supersample", "plant_spacing_m", "leaf_node_spacing_m", "leaf_size", "texture_scale")
+        for name in positive:
+            if not getattr(self, name) > 0:
+                raise ValueError(f"synth.{name} must be > 0, got {getattr(self, name)}")
+        non_negative = ("fruits_per_m", "odom_drift_m_per_m", "odom_yaw_drift_deg_per_m", "odom_noise_m",
+                        "det_false_pos_rate", "det_boundary_px", "det_min_area_px", "n_labelled", "workers",
+                        "base_height_m", "camera_mast_m")
+        for name in non_negative:
+            if getattr(self, name) < 0:
+                raise ValueError(f"synth.{name} must be >= 0, got {getattr(self, name)}")
+        for name in ("det_miss_rate", "det_merge_rate", "det_class_confusion_rate", "det_void_rate"):
             if not 0 <= getattr(self, name) <= 1:
                 raise ValueError(f"synth.{name} must be in [0, 1], got {getattr(self, name)}")
         if not 0 < self.fov_x_deg < 170:
             raise ValueError(f"synth.fov_x_deg must be in (0, 170), got {self.fov_x_deg}")
-        if self.n_labelled > self.n_frames:
-            raise ValueError(f"synth.n_labelled ({self.n_labelled}) exceeds n_frames ({self.n_frames})")
-
-
-def layout_for(cfg: Config, travel_m: float) -> scene.RowLayout:
-    lateral = 0.1  # camera offset from base_link towards the plants
-    pad = 1.6      # the far row is seen over a wider stretch than the near row
-    return scene.RowLayout(x_min_m=-pad, x_max_m=travel_m + pad, near_row_y_m=lateral + cfg.camera_distance_m,
-                           far_row_y_m=lateral + cfg.far_row_distance_m,
-                           wall_y_m=lateral + cfg.far_row_distance_m + 1.0,
-                           fruit_z_range_m=(cfg.camera_height_m - 0.2, cfg.camera_height_m + 0.18),
-                           plant_spacing_m=0.3, fruits_per_m=cfg.fruits_per_m)
+        if self.far_row_distance_m < self.camera_distance_m + 0.5:
+            raise ValueError(f"synth.far_row_distance_m ({self.far_row_distance_m}) must be at least 0.5 m beyond "
+                             f"synth.camera_distance_m ({self.camera_distance_m})")
+        if len(self.ripeness_mix) != 3 or min(self.ripeness_mix) < 0 or sum(self.ripeness_mix) <= 0:
+            raise ValueError(f"synth.ripeness_mix must be 3 non-negative shares (green, mixed, red) with a positive "
+                             f"sum, got {self.ripeness_mix}")
+        if self.n_labelled and self.n_labelled > self.n_frames - 2:
+            raise ValueError(f"synth.n_labelled ({self.n_labelled}) must be at most n_frames - 2 "
+                             f"({self.n_frames - 2}): labelled frames are never the first or last frame")
 
 
 def intrinsics(cfg: Config) -> np.ndarray:
-    fx = cfg.width / 2 / np.tan(np.radians(cfg.fov_x_deg) / 2)
-    return np.array([[fx, 0, cfg.width / 2], [0, fx, cfg.height / 2], [0, 0, 1.0]])
+    """3x3 K: square pixels, principal point at the image centre (pixel centres at half-integers)."""
+    f = cfg.width / 2 / np.tan(np.radians(cfg.fov_x_deg) / 2)
+    return np.array([[f, 0.0, cfg.width / 2], [0.0, f, cfg.height / 2], [0.0, 0.0, 1.0]])
 
 
-def _render_chunk(args: tuple) -> list[dict]:
-    layout, seed, poses, k, w, h, ss = args
-    sc = scene.build_scene(layout, seed)
-    return [scene.render(sc, p, k[0, 0], k[1, 1], k[0, 2], k[1, 2], w, h, ss) for p in poses]
+def frame_stamps(cfg: Config) -> np.ndarray:
+    return FIRST_STAMP_NS + np.round(np.arange(cfg.n_frames) * 1e9 / cfg.fps).astype(np.int64)
 
 
-def render_all(cfg: Config, layout: scene.RowLayout, poses: np.ndarray, k: np.ndarray, ctx: StageContext) -> list[dict]:
-    n_workers = cfg.workers or min(4, os.cpu_count() or 1)
-    chunk = max(1, min(8, len(poses) // max(1, n_workers * 2)))
-    jobs = [(layout, cfg.seed, poses[i:i + chunk], k, cfg.width, cfg.height, cfg.supersample)
-            for i in range(0, len(poses), chunk)]
-    if n_workers == 1:
-        return [f for j in ctx.progress(jobs, "render", len(jobs)) for f in _render_chunk(j)]
-    with ProcessPoolExecutor(n_workers, mp_context=mp.get_context("spawn")) as pool:
-        return [f for part in ctx.progress(pool.map(_render_chunk, jobs), "render", len(jobs)) for f in part]
+def odometry_stamps(cfg: Config, frame_stamps_ns: np.ndarray) -> np.ndarray:
+    """odom_rate_hz samples from 0.2 s before the first frame to at least 0.2 s after the last."""
+    period_ns = 1e9 / cfg.odom_rate_hz
+    t0 = frame_stamps_ns[0] - 200_000_000
+    n = int(np.ceil((frame_stamps_ns[-1] + 200_000_000 - t0) / period_ns)) + 1
+    return t0 + np.round(np.arange(n) * period_ns).astype(np.int64)
+
+
+def labelled_frames(cfg: Config) -> list[int]:
+    if not cfg.n_labelled:
+        return []
+    return sorted({int(i) for i in np.round(np.linspace(0, cfg.n_frames - 1, cfg.n_labelled + 2)[1:-1])})
+
+
+def row_layout(cfg: Config, cam_x: np.ndarray, cam_y: float, cam_z: float, k: np.ndarray) -> scene.RowLayout:
+    """Rows, fruit bands and plant stretch sized from what the camera path sees."""
+    tan_x, tan_y = cfg.width / 2 / k[0, 0], cfg.height / 2 / k[1, 1]
+    near_y, far_y = cam_y + cfg.camera_distance_m, cam_y + cfg.far_row_distance_m
+    wall_y = far_y + 1.0
+    x_lo, x_hi = float(cam_x.min()), float(cam_x.max())
+    near_half_h = max(0.02, (cfg.camera_distance_m - 0.06) * tan_y - 0.03)
+    far_half_h = max(0.05, cfg.far_row_distance_m * tan_y - 0.05)
+    reach_near, reach_far = cfg.camera_distance_m * tan_x, cfg.far_row_distance_m * tan_x
+    reach_wall = (wall_y - cam_y) * tan_x
+    leaf_margin_m = 0.25
+    return scene.RowLayout(
+        near_row_y_m=near_y, far_row_y_m=far_y, wall_y_m=wall_y,
+        x_range_m=(x_lo - reach_wall - 0.5, x_hi + reach_wall + 0.5),
+        near_plant_x_m=(x_lo - reach_near - 0.4, x_hi + reach_near + 0.4),
+        near_leaf_z_m=(cam_z - (cfg.camera_distance_m + 0.2) * tan_y - leaf_margin_m,
+                       cam_z + (cfg.camera_distance_m + 0.2) * tan_y + leaf_margin_m),
+        far_plant_x_m=(x_lo - reach_far - 0.4, x_hi + reach_far + 0.4),
+        far_leaf_z_m=(cam_z - (cfg.far_row_distance_m + 0.4) * tan_y - leaf_margin_m,
+                      cam_z + (cfg.far_row_distance_m + 0.4) * tan_y + leaf_margin_m),
+        near_fruit_x_m=(x_lo - reach_near, x_hi + reach_near),
+        near_fruit_z_m=(max(0.2, cam_z - near_half_h), cam_z + near_half_h),
+        far_fruit_x_m=(x_lo - reach_far, x_hi + reach_far),
+        far_fruit_z_m=(max(0.3, cam_z - far_half_h), min(2.1, cam_z + far_half_h)),
+        fruits_per_m=cfg.fruits_per_m, ripeness_mix=tuple(cfg.ripeness_mix), plant_spacing_m=cfg.plant_spacing_m,
+        node_spacing_m=cfg.leaf_node_spacing_m, leaf_size=cfg.leaf_size,
+        plant_height_m=max(2.4, cam_z + far_half_h + 0.3))
+
+
+T = TypeVar("T")
+R = TypeVar("R")
+
+
+def ordered_map(fn: Callable[[T], R], items: Iterable[T], workers: int) -> Iterator[R]:
+    """fn over items on `workers` threads, results in input order, at most 2 * workers in flight."""
+    if workers <= 1:
+        yield from map(fn, items)
+        return
+    with ThreadPoolExecutor(workers) as pool:
+        pending: deque = deque()
+        for item in items:
+            pending.append(pool.submit(fn, item))
+            if len(pending) >= 2 * workers:
+                yield pending.popleft().result()
+        while pending:
+            yield pending.popleft().result()
+
+
+def odometry_twist(stamps_ns: np.ndarray, poses: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Body-frame linear [K, 3] and angular [K, 3] velocities of a pose sequence (finite differences)."""
+    t = (stamps_ns - stamps_ns[0]) / 1e9
+    if len(t) < 2:
+        return np.zeros((len(t), 3)), np.zeros((len(t), 3))
+    v_world = np.gradient(poses[:, :3, 3], t, axis=0)
+    linear = np.einsum("kji,kj->ki", poses[:, :3, :3], v_world)
+    yaw = np.unwrap(np.arctan2(poses[:, 1, 0], poses[:, 0, 0]))
+    angular = np.zeros((len(t), 3))
+    angular[:, 2] = np.gradient(yaw, t)
+    return linear, angular
+
+
+def fruit_table(fruits: list[scene.Fruit], n_frames_visible: np.ndarray) -> pd.DataFrame:
+    """gt/fruits.parquet: the data/README.md columns plus n_frames_visible (frames with >= 1 pixel of it)."""
+    centres = np.array([f.centre for f in fruits], np.float64).reshape(-1, 3)
+    return pd.DataFrame({
+        "fruit_id": np.array([f.fruit_id for f in fruits], np.int32),
+        "class_id": np.array([f.class_id for f in fruits], np.int32),
+        "x_m": centres[:, 0], "y_m": centres[:, 1], "z_m": centres[:, 2],
+        "diameter_m": np.array([f.diameter_m for f in fruits], np.float64),
+        "length_m": np.array([f.length_m for f in fruits], np.float64),
+        "near_row": np.array([f.near_row for f in fruits], bool),
+        "n_frames_visible": np.asarray(n_frames_visible, np.int32),
+    })
 
 
 def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]:
     out = ctx.output_dir("raw")
-    rng = np.random.default_rng(cfg.seed)
-    period_ns = int(round(1e9 / cfg.fps))
-    first_ns = T0_NS + 200_000_000
-    stamps = first_ns + np.arange(cfg.n_frames, dtype=np.int64) * period_ns
-    duration_s = (stamps[-1] - T0_NS) / 1e9 + 0.2
-    travel = cfg.speed_m_per_s * duration_s
-    layout = layout_for(cfg, travel)
-    traj = trajectory.make_trajectories(T0_NS, duration_s, cfg.odom_rate_hz, cfg.speed_m_per_s, 0.0,
-                                        cfg.odom_drift_m_per_m, cfg.odom_yaw_drift_deg_per_m, cfg.odom_noise_m,
-                                        np.random.default_rng([cfg.seed, 1]))
-    t_rc = trajectory.camera_extrinsic(cfg.camera_height_m)
-    cam_gt = trajectory.interpolate(traj.stamps_ns, traj.gt_base, stamps) @ t_rc
+    stamps = frame_stamps(cfg)
+    odom_stamps = odometry_stamps(cfg, stamps)
+    odom_t0, n_odom = int(odom_stamps[0]), len(odom_stamps)
+
+    path = trajectory.BasePath.random(cfg.speed_m_per_s, cfg.base_height_m, 0.0, np.random.default_rng([cfg.seed, 1]))
+    ox, oy, oyaw = path.xy_yaw((odom_stamps - odom_t0) / 1e9)
+    odom = trajectory.drifting_odometry(ox, oy, oyaw, cfg.base_height_m,
+                                        trajectory.OdometryErrors(cfg.odom_drift_m_per_m, cfg.odom_yaw_drift_deg_per_m,
+                                                                  cfg.odom_noise_m),
+                                        np.random.default_rng([cfg.seed, 2]))
+    t_robot_camera = trajectory.camera_extrinsic(cfg.camera_mast_m, cfg.camera_lateral_m)
+    cam = path.poses((stamps - odom_t0) / 1e9) @ t_robot_camera  # [N, 4, 4] true camera-to-world
     k = intrinsics(cfg)
-
-    frames = render_all(cfg, layout, cam_gt, k, ctx)
-    sc = scene.build_scene(layout, cfg.seed)  # for the fruit table (same seed, same scene)
-
+    layout = row_layout(cfg, cam[:, 0, 3], cfg.camera_lateral_m, cfg.base_height_m + cfg.camera_mast_m, k)
+    sc = scene.build_scene(layout, cfg.seed)
+    fruits = sc.fruits
+    n_ids = len(fruits) + 1
+    sizes = detector.FruitSizes(np.array([0.0] + [f.diameter_m for f in fruits]),
+                                np.array([0.0] + [f.length_m for f in fruits]),
+                                np.array([False] + [f.near_row for f in fruits]), float(k[0, 0]), float(k[1, 1]))
     noise = detector.DetectorNoise(cfg.det_miss_rate, cfg.det_false_pos_rate, cfg.det_boundary_px,
-                                   cfg.det_merge_rate, cfg.det_class_confusion_rate)
-    fruit_px = k[0, 0] * 0.075 / cfg.camera_distance_m
-    labelled_idx = set(np.round(np.linspace(0, cfg.n_frames - 1, cfg.n_labelled + 2)[1:-1]).astype(int).tolist()) \
-        if cfg.n_labelled else set()
-    score_rows, labelled = [], []
+                                   cfg.det_merge_rate, cfg.det_class_confusion_rate, cfg.det_void_rate,
+                                   cfg.det_min_area_px)
+    labelled = set(labelled_frames(cfg))
+    workers = cfg.workers or min(4, os.cpu_count() or 1)
+    rays = render.camera_rays(k, cfg.width, cfg.height, cfg.supersample)
+
+    def render_frame(i: int) -> dict[str, np.ndarray]:
+        return render.render(sc, cam[i], k, cfg.width, cfg.height, cfg.supersample, cfg.texture_scale,
+                             nthreads=1 if workers > 1 else 2, rays=rays)
+
     bag = None
     if cfg.write_bag:
-        bag = writers.Ros1BagWriter(out / f"{ctx.seq}.bag", "/camera/color/image_raw",
-                                    "/camera/aligned_depth_to_color/image_raw", "/camera/color/camera_info", "/odom")
-        bag.static_tf(T0_NS, "base_link", "camera_color_optical_frame", trajectory.to_txyzq(t_rc[None])[0])
-    odom_txyzq = trajectory.to_txyzq(traj.odom_base)
-    odom_iter = iter(range(len(traj.stamps_ns)))
-    next_odom = next(odom_iter, None)
-    for i in ctx.progress(range(cfg.n_frames), "write", cfg.n_frames):
-        fr, stamp = frames[i], int(stamps[i])
-        det = detector.corrupt(fr["semantic"], fr["instance"], noise, np.random.default_rng([cfg.seed, 2, i]),
-                               fruit_px)
-        writers.write_frame_pngs(out, stamp, fr, det)
-        score_rows += [(stamp, sid, klass, score) for sid, klass, score in det[2]]
-        if i in labelled_idx:
-            labelled.append((stamp, fr["semantic"], fr["instance"]))
-            writers.write_png(out / "seg" / f"{stamp}.png", fr["instance"])
-        if bag is not None:
-            while next_odom is not None and traj.stamps_ns[next_odom] <= stamp:
-                bag.odom(int(traj.stamps_ns[next_odom]), odom_txyzq[next_odom])
-                next_odom = next(odom_iter, None)
-            bag.camera_info(stamp, k, cfg.width, cfg.height, "camera_color_optical_frame")
-            bag.image("color", stamp, fr["rgb"], "rgb8", "camera_color_optical_frame")
-            bag.image("depth", stamp, writers.depth_to_mm(fr["depth"]), "16UC1", "camera_color_optical_frame")
-    if bag is not None:
-        while next_odom is not None:
-            bag.odom(int(traj.stamps_ns[next_odom]), odom_txyzq[next_odom])
-            next_odom = next(odom_iter, None)
-        bag.close()
+        bag = writers.Ros1BagWriter(out / f"{ctx.seq}.bag", TOPICS)
+        bag.static_tf(int(odom_stamps[0]), BASE_FRAME, CAMERA_FRAME, trajectory.to_txyzq(t_robot_camera[None])[0])
+    odom_txyzq = trajectory.to_txyzq(odom)
+    lin, ang = odometry_twist(odom_stamps, odom)
+    next_odom = 0
 
-    writers.write_params(out / "params.yaml", k, t_rc, cfg.width, cfg.height)
-    writers.write_odometry_csv(out / "odometry.csv", traj.stamps_ns, odom_txyzq)
+    def odom_until(stamp_ns: int) -> None:
+        nonlocal next_odom
+        while bag is not None and next_odom < n_odom and odom_stamps[next_odom] <= stamp_ns:
+            j = next_odom
+            bag.odom(int(odom_stamps[j]), odom_txyzq[j], lin[j], ang[j], ODOM_FRAME, BASE_FRAME)
+            next_odom += 1
+
+    score_rows: list[tuple[int, int, int, float]] = []
+    annotated: list[tuple[int, np.ndarray, np.ndarray]] = []
+    views = np.zeros(n_ids, np.int32)
+    try:
+        for i, fr in enumerate(ctx.progress(ordered_map(render_frame, range(cfg.n_frames), workers), "render and write",
+                                            cfg.n_frames)):
+            stamp = int(stamps[i])
+            depth_mm = depth_to_mm(fr["depth"])
+            det = detector.detect(fr["semantic"], fr["instance"], fr["depth"], sizes, noise,
+                                  np.random.default_rng([cfg.seed, 3, i]))
+            writers.write_frame_pngs(out, stamp, fr["rgb"], depth_mm, fr["semantic"], fr["instance"], det.semantic,
+                                     det.instance)
+            score_rows += [(stamp, sid, klass, score) for sid, klass, score in det.segments]
+            for key, n in det.stats.items():
+                ctx.count(f"detector_{key}", n)
+            views[np.unique(fr["instance"])] += 1
+            if i in labelled:
+                annotated.append((stamp, fr["semantic"], fr["instance"]))
+                write_png(out / "seg" / f"{stamp}.png", fr["instance"])
+            if bag is not None:
+                odom_until(stamp)
+                bag.camera_info(stamp, k, cfg.width, cfg.height, CAMERA_FRAME)
+                bag.image("color", stamp, fr["rgb"], "rgb8", CAMERA_FRAME)
+                bag.image("depth", stamp, depth_mm, "16UC1", CAMERA_FRAME)
+        odom_until(int(odom_stamps[-1]))
+    finally:
+        if bag is not None:
+            bag.close()
+
+    writers.write_params(out / "params.yaml", k, t_robot_camera, cfg.width, cfg.height)
+    writers.write_odometry_csv(out / "odometry.csv", odom_stamps, odom_txyzq)
+    (out / "pred_seg").mkdir(exist_ok=True)
     pd.DataFrame(score_rows, columns=["stamp_ns", "segment_id", "class_id", "score"]).to_csv(
         out / "pred_seg" / "scores.csv", index=False)
-    writers.write_json(out / "annotations.json", writers.coco_annotations(labelled, cfg.width, cfg.height))
+    writers.write_json(out / "annotations.json", writers.coco_annotations(annotated, cfg.width, cfg.height))
 
-    gt_dir = out / "gt"
-    poses = pd.DataFrame(trajectory.to_txyzq(cam_gt), columns=["tx", "ty", "tz", "qx", "qy", "qz", "qw"])
+    gt = out / "gt"
+    gt.mkdir(exist_ok=True)
+    poses = pd.DataFrame(trajectory.to_txyzq(cam), columns=writers.POSE_COLUMNS)
     poses.insert(0, "stamp_ns", stamps)
     poses.insert(0, "frame_id", np.arange(cfg.n_frames, dtype=np.int32))
-    poses.to_parquet(gt_dir / "poses.parquet", index=False)
-    fruits = pd.DataFrame([{"fruit_id": f.fruit_id, "class_id": f.class_id, "x_m": f.centre[0], "y_m": f.centre[1],
-                            "z_m": f.centre[2], "diameter_m": f.diameter_m, "length_m": f.length_m,
-                            "near_row": f.near_row} for f in sc.fruits])
-    fruits.to_parquet(gt_dir / "fruits.parquet", index=False)
-    (gt_dir / "synth_config.yaml").write_text(yaml.safe_dump(asdict(cfg), sort_keys=True))
-    ctx.summary.update(frames=cfg.n_frames, fruits_near=int(fruits["near_row"].sum()),
-                       fruits_far=int((~fruits["near_row"]).sum()), detections=len(score_rows),
-                       labelled=len(labelled), travel_m=round(float(travel), 3))
+    poses.to_parquet(gt / "poses.parquet", index=False)
+    table = fruit_table(fruits, views[1:])
+    table.to_parquet(gt / "fruits.parquet", index=False)
+    # the settings that made the row (render threads do not change it)
+    settings = {k_: list(v) if isinstance(v, tuple) else v for k_, v in asdict(cfg).items() if k_ != "workers"}
+    (gt / "synth_config.yaml").write_text(yaml.safe_dump(settings, sort_keys=True))
+
+    near = table["near_row"].to_numpy()
+    seen = table["n_frames_visible"].to_numpy() > 0
+    ctx.count("frames", cfg.n_frames)
+    ctx.count("fruits_near", int(near.sum()))
+    ctx.count("fruits_near_seen", int((near & seen).sum()))
+    ctx.count("fruits_far", int((~near).sum()))
+    ctx.count("labelled_frames", len(annotated))
+    ctx.count("odometry_samples", n_odom)
+    drift = np.hypot(odom[-1, 0, 3] - ox[-1], odom[-1, 1, 3] - oy[-1])
+    ctx.note(f"{cam[-1, 0, 3] - cam[0, 0, 3]:.2f} m of row in {cfg.n_frames} frames; odometry ends "
+             f"{drift:.3f} m off the truth; {int((near & seen).sum())} near-row fruits in view")
     return {}

@@ -1,16 +1,29 @@
-"""Turn ground-truth panoptic labels into what a still-image detector (Mask2Former-like) outputs:
-per-frame shuffled ids, missed fruits, false positives, noisy boundaries, merged neighbours,
-confused ripeness classes and confidences that are lower on the wrong segments."""
+"""Turn a ground-truth panoptic frame into what a still-image detector (Mask2Former-like) outputs.
+
+Per frame: every visible fruit is missed with probability 1 - (1 - miss_rate)^(0.5 + 1.5 (1 - v)), v
+being the visible share of its unoccluded projected area pi/4 (fx d / z)(fy l / z): occluded and cut-off
+fruits are missed more often, fully visible ones less (miss_rate 0.15: 8 % when fully visible, 18 % when
+half hidden, 28 % when almost hidden; 0 and 1 stay exact); a kept fruit is merged with a touching
+neighbour with probability merge_rate and given a neighbouring ripeness class with probability
+class_confusion_rate; its boundary moves in or out by a smooth, spatially varying offset of at
+most boundary_px pixels; Poisson(false_pos_rate) fruit-sized blobs appear on leaves; segments
+smaller than min_area_px are dropped; ids are 1..n in random order. Scores: U(0.75, 0.99) for a
+correct segment, U(0.3, 0.7) for a merged, confused or false one. The semantic map is the ground
+truth with undetected fruits turned into the stuff around them (plant in the near row, background
+in the far row), a jittered plant/background border, the segments painted in, and a few void
+pixels (255) on segment borders.
+"""
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
 
-from pipeline.classes import THING_IDS
+from pipeline.classes import VOID
+from synthetic.scene import BACKGROUND, GREEN, MIXED, PLANT, RED
 
-KERNEL = np.ones((3, 3), np.uint8)
+NEIGHBOUR_CLASS = {GREEN: (MIXED,), MIXED: (GREEN, RED), RED: (MIXED,)}
 
 
 @dataclass(frozen=True)
@@ -20,81 +33,144 @@ class DetectorNoise:
     boundary_px: int
     merge_rate: float
     class_confusion_rate: float = 0.05
+    void_rate: float = 0.03
+    """Share of segment-border pixels (outside every segment) left void."""
     min_area_px: int = 12
 
 
-def _morph(mask: np.ndarray, k: int) -> np.ndarray:
-    if k == 0:
-        return mask
-    op = cv2.dilate if k > 0 else cv2.erode
-    return op(mask.astype(np.uint8), KERNEL, iterations=abs(k)).astype(bool)
+@dataclass(frozen=True)
+class FruitSizes:
+    """Ground-truth sizes indexed by fruit id (index 0 unused), and the focal lengths in pixels."""
+
+    diameter_m: np.ndarray
+    length_m: np.ndarray
+    near_row: np.ndarray
+    fx: float
+    fy: float
 
 
-def corrupt(sem: np.ndarray, inst: np.ndarray, noise: DetectorNoise, rng: np.random.Generator,
-            fruit_px: float) -> tuple[np.ndarray, np.ndarray, list[tuple[int, int, float]]]:
-    """GT semantic [H, W] and instance [H, W] -> detector semantic (uint8), instance (uint16) and
-    [(segment_id, class_id, score)]. `fruit_px` is a typical fruit diameter in pixels (false positive size)."""
+@dataclass
+class Detection:
+    semantic: np.ndarray
+    """[H, W] uint8 class ids, 255 = void."""
+    instance: np.ndarray
+    """[H, W] uint16 segment ids 1..n (0 = stuff / none)."""
+    segments: list[tuple[int, int, float]]
+    """(segment_id, class_id, score) sorted by segment id."""
+    stats: dict[str, int] = field(default_factory=dict)
+
+
+def jitter_mask(mask: np.ndarray, max_px: float, rng: np.random.Generator, bias: float | None = None) -> np.ndarray:
+    """Move the boundary of a binary mask in or out by a smooth offset field in [-max_px, max_px]
+    (positive = grow). Works on the mask's bounding box; returns a new full-size bool mask."""
+    if max_px <= 0 or not mask.any():
+        return mask.copy()
+    h, w = mask.shape
+    ys, xs = np.nonzero(mask)
+    pad = int(np.ceil(max_px)) + 2
+    y0, y1 = max(0, ys.min() - pad), min(h, ys.max() + pad + 1)
+    x0, x1 = max(0, xs.min() - pad), min(w, xs.max() + pad + 1)
+    crop = mask[y0:y1, x0:x1].astype(np.uint8)
+    inside = cv2.distanceTransform(crop, cv2.DIST_L2, 3)
+    outside = cv2.distanceTransform(1 - crop, cv2.DIST_L2, 3)
+    signed = np.where(crop > 0, inside, 1.0 - outside)  # >= 1 inside, <= 0 outside: the border is at 0.5
+    g = rng.uniform(-0.7, 0.7) * max_px if bias is None else bias
+    coarse = rng.uniform(-1.0, 1.0, (4, 4)).astype(np.float32)
+    fieldv = cv2.resize(coarse, (x1 - x0, y1 - y0), interpolation=cv2.INTER_CUBIC)
+    offset = np.clip(g + 0.6 * max_px * fieldv, -max_px, max_px)
+    out = np.zeros_like(mask)
+    out[y0:y1, x0:x1] = signed + offset > 0.5
+    return out
+
+
+def _blob(h: int, w: int, cy: int, cx: int, ay: float, ax: float, angle_deg: float) -> np.ndarray:
+    m = np.zeros((h, w), np.uint8)
+    cv2.ellipse(m, (int(cx), int(cy)), (max(1, int(round(ax))), max(1, int(round(ay)))), angle_deg, 0, 360, 1, -1)
+    return m.astype(bool)
+
+
+def detect(sem: np.ndarray, inst: np.ndarray, depth_m: np.ndarray, sizes: FruitSizes, noise: DetectorNoise,
+           rng: np.random.Generator) -> Detection:
+    """Ground-truth semantic [H, W], instance [H, W] (fruit ids) and depth [H, W] metres -> Detection."""
     h, w = sem.shape
-    things = np.isin(sem, THING_IDS) & (inst > 0)
-    ids, areas = np.unique(inst[things], return_counts=True)
-    out_sem = sem.copy()
-    out_sem[things] = 1  # fruits the detector does not report look like plant
+    stats = {"visible": 0, "missed": 0, "merged": 0, "confused": 0, "false_pos": 0, "dropped_small": 0}
+    ids, areas = np.unique(inst[inst > 0], return_counts=True)
+    stats["visible"] = len(ids)
+    masks = {int(i): inst == i for i in ids}
     segments: list[tuple[np.ndarray, int, float]] = []
     used: set[int] = set()
-    order = rng.permutation(len(ids))
-    for j in order:
+    for j in rng.permutation(len(ids)):
         fid, area = int(ids[j]), int(areas[j])
         if fid in used:
             continue
         used.add(fid)
-        mask = inst == fid
-        klass = int(np.bincount(sem[mask]).argmax())
-        # small / occluded fruits are missed more often
-        p_miss = min(1.0, noise.miss_rate * (1.0 + 2.0 * max(0.0, 1 - area / (0.5 * fruit_px ** 2))))
-        if rng.random() < p_miss:
+        mask = masks[fid]
+        z = float(np.median(depth_m[mask])) + 0.5 * float(sizes.diameter_m[fid])
+        full = np.pi / 4 * (sizes.fx * sizes.diameter_m[fid] / z) * (sizes.fy * sizes.length_m[fid] / z)
+        vis = min(1.0, area / max(full, 1.0))
+        if rng.random() < 1.0 - (1.0 - noise.miss_rate) ** (0.5 + 1.5 * (1.0 - vis)):
+            stats["missed"] += 1
             continue
+        klass = int(np.bincount(sem[mask]).argmax())
         score = rng.uniform(0.75, 0.99)
         if rng.random() < noise.merge_rate:
-            near = np.unique(inst[_morph(mask, 3) & things & ~mask])
-            near = [int(n) for n in near if n not in used]
+            ring = cv2.dilate(mask.astype(np.uint8), np.ones((3, 3), np.uint8), iterations=3 + noise.boundary_px) > 0
+            near = [int(n) for n in np.unique(inst[ring & (inst > 0) & ~mask]) if int(n) not in used]
             if near:
-                other = near[0]
+                other = near[int(rng.integers(len(near)))]
                 used.add(other)
-                mask = mask | (inst == other)
-                score = rng.uniform(0.45, 0.8)
-        if rng.random() < noise.class_confusion_rate:
-            klass = int(np.clip(klass + rng.choice([-1, 1]), min(THING_IDS), max(THING_IDS)))
-            score = min(score, rng.uniform(0.4, 0.75))
-        mask = _morph(mask, int(rng.integers(-noise.boundary_px, noise.boundary_px + 1)))
-        segments.append((mask, klass, score))
+                if masks[other].sum() > mask.sum():
+                    klass = int(np.bincount(sem[masks[other]]).argmax())
+                mask = mask | masks[other]
+                score = rng.uniform(0.3, 0.7)
+                stats["merged"] += 1
+        if rng.random() < noise.class_confusion_rate and klass in NEIGHBOUR_CLASS:
+            klass = int(rng.choice(NEIGHBOUR_CLASS[klass]))
+            score = rng.uniform(0.3, 0.7)
+            stats["confused"] += 1
+        segments.append((jitter_mask(mask, noise.boundary_px, rng), klass, score))
+    # false positives: fruit-sized blobs on leaves, mostly taken for green fruit
+    plant_px = np.flatnonzero((sem.ravel() == PLANT) & (depth_m.ravel() > 0))
     for _ in range(rng.poisson(noise.false_pos_rate)):
-        cy, cx = int(rng.integers(0, h)), int(rng.integers(0, w))
-        if sem[cy, cx] != 1:  # false positives appear on plants (leaves look like green fruit)
-            continue
-        fp = np.zeros((h, w), np.uint8)
-        axes = (max(2, int(fruit_px * rng.uniform(0.25, 0.5))), max(2, int(fruit_px * rng.uniform(0.3, 0.6))))
-        cv2.ellipse(fp, (cx, cy), axes, float(rng.uniform(0, 180)), 0, 360, 1, -1)
-        segments.append((fp.astype(bool) & (sem != 0), int(rng.choice(THING_IDS, p=[0.6, 0.2, 0.2])),
-                         rng.uniform(0.3, 0.7)))
+        if not len(plant_px):
+            break
+        p = int(plant_px[rng.integers(len(plant_px))])
+        cy, cx = divmod(p, w)
+        z = float(depth_m[cy, cx])
+        ax = sizes.fx * rng.uniform(0.02, 0.04) / z
+        blob = _blob(h, w, cy, cx, ax * rng.uniform(0.7, 1.4), ax, rng.uniform(0, 180))
+        blob = jitter_mask(blob, max(1, noise.boundary_px), rng) & (inst == 0)
+        segments.append((blob, int(rng.choice([GREEN, MIXED, RED], p=[0.6, 0.2, 0.2])), rng.uniform(0.3, 0.7)))
+        stats["false_pos"] += 1
+
+    out_sem = sem.astype(np.uint8).copy()
+    near = sizes.near_row[inst]
+    things = inst > 0
+    out_sem[things & near] = PLANT
+    out_sem[things & ~near] = BACKGROUND
+    # the plant/background border is not exact either
+    plant = out_sem == PLANT
+    moved = jitter_mask(plant, min(1.0, float(noise.boundary_px)), rng, bias=0.0) if noise.boundary_px else plant
+    out_sem[moved & ~plant & (out_sem == BACKGROUND)] = PLANT
+    out_sem[plant & ~moved] = BACKGROUND
+
     out_inst = np.zeros((h, w), np.uint16)
-    table = []
-    for k, (mask, klass, score) in enumerate(segments):
+    kept: list[tuple[int, float]] = []
+    for k in rng.permutation(len(segments)):
+        mask, klass, score = segments[k]
         mask = mask & (out_inst == 0)
         if mask.sum() < noise.min_area_px:
+            stats["dropped_small"] += 1
             continue
-        sid = len(table) + 1
-        out_inst[mask] = sid
+        kept.append((klass, score))
+        out_inst[mask] = len(kept)
         out_sem[mask] = klass
-        table.append((sid, klass, float(round(score, 4))))
-    # per-frame ids carry no meaning: shuffle them
-    if table:
-        perm = rng.permutation(len(table)) + 1
-        remap = np.zeros(len(table) + 1, np.uint16)
-        remap[1:] = perm
-        out_inst = remap[out_inst]
-        table = sorted(((int(perm[s - 1]), c, sc) for s, c, sc in table))
-    # boundary pixels between classes are sometimes left void, as a detector's low-confidence band
-    edges = cv2.morphologyEx(out_sem, cv2.MORPH_GRADIENT, KERNEL) > 0
-    void = edges & (rng.random((h, w)) < 0.15) & (out_inst == 0)
-    out_sem[void] = 255
-    return out_sem.astype(np.uint8), out_inst, table
+    # ids carry no meaning from frame to frame: 1..n in random order
+    perm = np.concatenate([[0], rng.permutation(len(kept)) + 1]).astype(np.uint16)
+    out_inst = perm[out_inst]
+    table = sorted((int(perm[i + 1]), int(c), round(float(s), 4)) for i, (c, s) in enumerate(kept))
+    if noise.void_rate > 0 and kept:
+        border = cv2.morphologyEx(out_inst, cv2.MORPH_GRADIENT, np.ones((3, 3), np.uint8)) > 0
+        out_sem[border & (out_inst == 0) & (rng.random((h, w)) < noise.void_rate)] = VOID
+    stats["segments"] = len(table)
+    return Detection(out_sem, out_inst, table, stats)

@@ -1,43 +1,69 @@
-"""Procedural, view-independent 3D textures: value noise evaluated at world hit points."""
+"""Procedural, view-independent 3D textures: hashed lattice value noise evaluated at world points.
+
+A texture is a function of the surface point only (never of the viewing ray), so every view of a
+point sees the same albedo: what a NeRF can fit exactly and what SfM can match between frames.
+
+Value noise: random values on the integer lattice of p / scale, blended with the smoothstep
+f^2 (3 - 2 f) of the fractional part. The lattice hash is h = (ix * P1) ^ (iy * P2) ^ (iz * P3) in
+uint32, mixed by a multiplication with the golden ratio constant and a shift to 16 bits, which
+indexes a table of 65536 random values drawn from the seed.
+Example: value_noise(p, 0.01) varies over about 1 cm; fbm(p, 0.04, 3) adds octaves of 4, 2 and 1 cm.
+"""
 from __future__ import annotations
+
+from functools import lru_cache
 
 import numpy as np
 
-_P1, _P2, _P3 = np.uint64(73856093), np.uint64(19349663), np.uint64(83492791)
+_BITS = 16
+_P = (np.uint32(73856093), np.uint32(19349663), np.uint32(83492791))
+_GOLD = np.uint32(2654435761)
 
 
-def _hash01(ix: np.ndarray, iy: np.ndarray, iz: np.ndarray, seed: int) -> np.ndarray:
-    h = (ix.astype(np.int64).astype(np.uint64) * _P1) ^ (iy.astype(np.int64).astype(np.uint64) * _P2) \
-        ^ (iz.astype(np.int64).astype(np.uint64) * _P3) ^ np.uint64(seed * 2654435761 % (1 << 32))
-    h ^= h >> np.uint64(13)
-    h *= np.uint64(0x5BD1E995)
-    h ^= h >> np.uint64(15)
-    return (h & np.uint64(0xFFFFFF)).astype(np.float64) / float(0xFFFFFF)
+@lru_cache(maxsize=256)
+def _table(seed: int) -> np.ndarray:
+    return np.random.default_rng([int(seed), 7919]).random(1 << _BITS, dtype=np.float32)
 
 
 def value_noise(p: np.ndarray, scale_m: float, seed: int = 0) -> np.ndarray:
-    """Smooth noise in [0, 1] with features of size `scale_m`. p [N, 3] metres -> [N]."""
-    q = p / scale_m
-    i = np.floor(q)
-    f = q - i
-    f = f * f * (3 - 2 * f)
-    i = i.astype(np.int64)
-    out = np.zeros(len(p))
-    for dx in (0, 1):
-        wx = f[:, 0] if dx else 1 - f[:, 0]
-        for dy in (0, 1):
-            wy = f[:, 1] if dy else 1 - f[:, 1]
-            for dz in (0, 1):
-                wz = f[:, 2] if dz else 1 - f[:, 2]
-                out += wx * wy * wz * _hash01(i[:, 0] + dx, i[:, 1] + dy, i[:, 2] + dz, seed)
-    return out
+    """Smooth noise in [0, 1] with features of size `scale_m`. p [N, 3] metres -> [N] float32."""
+    q = np.asarray(p, np.float32) * np.float32(1.0 / scale_m)
+    fl = np.floor(q)
+    f = q - fl
+    f = f * f * (np.float32(3) - np.float32(2) * f)
+    i = fl.astype(np.int64).astype(np.uint32)  # two's complement wrap keeps negative cells distinct
+    h0 = [i[:, a] * _P[a] for a in range(3)]
+    h1 = [h0[a] + _P[a] for a in range(3)]
+    table = _table(seed)
+    shift = np.uint32(32 - _BITS)
+
+    def corner(hx: np.ndarray, hy: np.ndarray, hz: np.ndarray) -> np.ndarray:
+        return table[((hx ^ hy ^ hz) * _GOLD) >> shift]
+
+    fx, fy, fz = f[:, 0], f[:, 1], f[:, 2]
+    out = []
+    for hz in (h0[2], h1[2]):
+        y0 = corner(h0[0], h0[1], hz)
+        y0 += (corner(h1[0], h0[1], hz) - y0) * fx
+        y1 = corner(h0[0], h1[1], hz)
+        y1 += (corner(h1[0], h1[1], hz) - y1) * fx
+        y0 += (y1 - y0) * fy
+        out.append(y0)
+    return out[0] + (out[1] - out[0]) * fz
 
 
 def fbm(p: np.ndarray, scale_m: float, octaves: int = 3, seed: int = 0) -> np.ndarray:
-    """Fractal sum of value noise, in [0, 1]."""
-    total, amp, norm = np.zeros(len(p)), 1.0, 0.0
+    """Fractal sum of value noise (octave o has size scale_m / 2^o and weight 1/2^o), in [0, 1]."""
+    total = np.zeros(len(p), np.float32)
+    amp, norm = 1.0, 0.0
     for o in range(octaves):
-        total += amp * value_noise(p, scale_m / (2 ** o), seed + 17 * o)
+        total += np.float32(amp) * value_noise(p, scale_m / 2 ** o, seed + 17 * o)
         norm += amp
         amp *= 0.5
-    return total / norm
+    return total / np.float32(norm)
+
+
+def smoothstep(e0: float, e1: float, x: np.ndarray) -> np.ndarray:
+    """0 below e0, 1 above e1, smooth in between (e0 > e1 flips it)."""
+    t = np.clip((x - e0) / (e1 - e0), 0.0, 1.0)
+    return t * t * (3 - 2 * t)
