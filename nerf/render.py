@@ -50,10 +50,8 @@ def candidates(origins: Tensor, dirs: Tensor, edges: Tensor, occupied_fn, jitter
     occupied cell [R, S] (and before the ray's t_max, if given)."""
     r = origins.shape[0]
     lo, hi = edges[:-1], edges[1:]
-    u = torch.rand(r, lo.shape[0], device=origins.device) if jitter else 0.5
-    t = lo + (hi - lo) * u
-    if not torch.is_tensor(t) or t.dim() == 1:
-        t = t.expand(r, -1) if torch.is_tensor(t) else t
+    u = torch.rand(r, lo.shape[0], device=origins.device) if jitter else torch.full((r, lo.shape[0]), 0.5, device=origins.device)
+    t = lo + (hi - lo) * u                                                      # [R, S]
     with torch.no_grad():
         pts = origins.detach()[:, None, :] + dirs.detach()[:, None, :] * t[..., None]
         occ = occupied_fn(pts.reshape(-1, 3)).reshape(r, -1)
