@@ -17,18 +17,9 @@ import torch
 from torch import Tensor, nn
 
 from nerf.encoding import PermutoEncoding
+from nerf.field import mlp
 
 GridMode = Literal["delta", "shared", "independent"]
-
-
-def mlp(n_in: int, hidden: int, n_hidden: int, n_out: int) -> nn.Sequential:
-    layers: list[nn.Module] = []
-    d = n_in
-    for _ in range(n_hidden):
-        layers += [nn.Linear(d, hidden), nn.ReLU(inplace=True)]
-        d = hidden
-    layers.append(nn.Linear(d, n_out))
-    return nn.Sequential(*layers)
 
 
 class PanopticField(nn.Module):
