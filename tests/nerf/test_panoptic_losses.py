@@ -39,3 +39,29 @@ def test_consistency_is_zero_for_uniform_segments():
     p = torch.tensor([[0.2, 0.8], [0.2, 0.8], [0.9, 0.1]])
     assert consistency_loss(p, torch.tensor([0, 0, -1]), 1) == 0
     assert consistency_loss(p, torch.tensor([0, 0, 0]), 1) > 0
+
+
+def test_panoptic_losses_move_neither_density_nor_poses():
+    from nerf.config import preset
+    from nerf.field import RadianceField
+    from nerf.panoptic import PanopticField
+    from nerf.poses import PoseCorrection
+    from nerf.render import composite_weights
+
+    cfg = preset("cpu", n_levels=4, log2_capacity=10)
+    field = RadianceField(cfg, scene_scale_m=1.0)
+    poses = PoseCorrection(1, scale_m=1.0)
+    pan = PanopticField(4, 2, 8, cfg.coarsest_res_m, cfg.finest_res_m, n_classes=5, n_slots=8)
+    c2w = poses.apply(torch.eye(4)[None], torch.tensor([0]))
+    x = c2w[0, :3, 3] + torch.rand(32, 3)                         # positions depend on the pose
+    d = torch.nn.functional.normalize(torch.rand(32, 3), dim=-1)
+    sigma, rgb, g = field(x, d)
+    ray = torch.arange(32) // 8
+    w, _ = composite_weights(sigma, torch.full((32,), 0.1), ray, 4)
+    sem, inst = pan(x, g)
+    loss = semantic_loss(integrate(sem, w, ray, 4), torch.tensor([0, 1, 2, 3]), torch.ones(4)) + \
+        instance_loss(integrate(inst, w, ray, 4), torch.tensor([1, 2, 0, 3]))
+    loss.backward()
+    assert field.grid.table.grad is None and all(p.grad is None for p in field.density_net.parameters())
+    assert poses.rot6d.grad is None and poses.trans.grad is None
+    assert pan.grid.table.grad is not None and pan.grid.table.grad.abs().sum() > 0
