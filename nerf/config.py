@@ -58,6 +58,8 @@ class NerfConfig:
     """samples in the band around the sensor depth (train_sampling = depth)."""
     free_samples: int = 4
     """samples in the free space in front of the sensor depth (train_sampling = depth)."""
+    max_step_m: float = 0.0
+    """cap on the marching step (0 = none): keeps distant surfaces (far row, wall) from being undersampled."""
     max_samples_per_ray: int = 96
     """cap on samples per ray during training."""
     occupancy_res: int = 128

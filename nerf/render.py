@@ -25,10 +25,18 @@ def pixel_rays(k: Tensor, c2w: Tensor, u: Tensor, v: Tensor) -> tuple[Tensor, Te
     return c2w[:, :3, 3], d
 
 
-def cone_steps(near: float, far: float, step_per_m: float, device: torch.device) -> Tensor:
-    """Sample depths from near to far with dt = t * step_per_m (exponential spacing) -> edges [S+1]."""
-    n = int(torch.ceil(torch.log(torch.tensor(far / near)) / torch.log1p(torch.tensor(step_per_m))).item())
-    return near * (1 + step_per_m) ** torch.arange(n + 1, device=device, dtype=torch.float32)
+def cone_steps(near: float, far: float, step_per_m: float, device: torch.device, max_step_m: float = 0.0) -> Tensor:
+    """Sample depths from near to far with dt = t * step_per_m (exponential spacing), dt capped at
+    max_step_m when > 0 (so distant surfaces still get several samples) -> edges [S+1]."""
+    edges = [near]
+    t = near
+    while t < far:
+        dt = t * step_per_m
+        if max_step_m > 0:
+            dt = min(dt, max_step_m)
+        t = min(far, t + dt)
+        edges.append(t)
+    return torch.tensor(edges, dtype=torch.float32, device=device)
 
 
 @dataclass

@@ -113,7 +113,7 @@ class NerfModel:
 
     def edges(self, device) -> Tensor:
         step = self.cfg.step_scale / float(self.intrinsics[:, 0].mean())
-        return cone_steps(self.cfg.near_m, self.cfg.far_m, step, device)
+        return cone_steps(self.cfg.near_m, self.cfg.far_m, step, device, self.cfg.max_step_m)
 
     def occupied_fn(self):
         if self.cfg.skip_empty:
