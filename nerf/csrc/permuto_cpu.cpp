@@ -1,359 +1,442 @@
-// Fused CPU kernels (OpenMP) for the multi-resolution permutohedral hash encoding, a cubic
-// (trilinear, 8-corner) hash grid written with the same care for comparison, and a random-read
-// microbenchmark giving the machine's limit. The maths is documented in nerf/encoding.py; the
-// pure-torch reference there is what the tests compare these kernels against.
+// Fused CPU kernels (C++17, OpenMP) for the multi-resolution permutohedral hash encoding, a cubic
+// (trilinear, 8-corner) hash grid written with the same care for comparison, and a random-access
+// microbenchmark giving the machine's limit. The maths is in nerf/encoding.py; the pure-torch
+// references there are what tests/nerf/test_encoding.py compares these kernels against.
 //
-// Layout: x [N, 3] float32, table [L, T, F] float32 (T a power of two), scales [L], shifts [L, 3];
-// output [N, L * F] level-major. Loops run level-major so one level's table stays in cache while
-// all points pass; the table gradient uses one buffer per thread for the current level only.
+// Inputs: x [N, 3] float32, table [L, T, F] float32 (T a power of two), coef [L, 3] (the per-level,
+// per-axis factor: 1 / (sqrt((i+1)(i+2)) sigma_l) for the lattice, 1 / sigma_l for the cubic grid),
+// shifts [L, 3]. Output [N, L * F], level-major within a row.
+//
+// What makes it fast (DESIGN section 8, measured on 2-core Zen 1 VMs):
+// - Work is split by LEVEL (one OpenMP task per level, finest first): a level's table stays in
+//   cache while all points pass, and its gradient slice has a single writer, so no atomics, no
+//   per-thread copies of the table gradient and no reduction pass; the slice is zeroed by that
+//   writer just before use. Results do not depend on the thread count.
+// - Points go through in blocks: the simplices of block k+1 are computed (vectorised) and their
+//   table rows prefetched before block k is gathered, so many random reads are in flight.
+// - When x requires grad, the forward also writes d features / d x (a [3, F] Jacobian per point
+//   and level, from the rows it has just read); the backward contracts it with grad_out in a
+//   streaming pass instead of a second round of random table reads.
+// - Features are produced into / consumed from a level-major [L, N, F] scratch, transposed once,
+//   instead of striding through the [N, L * F] rows once per level.
+// - No page faults in steady state: outputs come from a small pool of blocks, scratch is kept.
+// - Power-of-two masks, constants hoisted per level, no libm calls, the feature count a
+//   compile-time constant for F in {1, 2, 4, 8}; an AVX2 build of the same code picked at run time.
 #include <torch/extension.h>
 #include <ATen/Parallel.h>
 #include <omp.h>
 
-#include <cmath>
+#include <algorithm>
 #include <cstdint>
+#include <cstdlib>
+#include <cstring>
+#include <mutex>
+#include <new>
+#include <optional>
+#include <unordered_map>
 #include <vector>
+
+// The per-level kernels, compiled for baseline x86-64 and, on x86, once more for AVX2 (8-wide
+// lattice arithmetic; no FMA, so results are bit-identical); the CPU is asked at run time.
+namespace base {
+#include "permuto_cpu_kernels.h"
+}  // namespace base
+#if defined(__x86_64__) && defined(__GNUC__)
+#pragma GCC push_options
+#pragma GCC target("avx2")
+namespace avx2 {
+#include "permuto_cpu_kernels.h"
+}  // namespace avx2
+#pragma GCC pop_options
+#define PAG_HAVE_AVX2 1
+#endif
 
 namespace {
 
-constexpr uint32_t P1 = 2654435761u;
-constexpr uint32_t P2 = 805459861u;
-constexpr int64_t BLOCK = 16;
+using base::BLOCK;
 
-inline uint32_t hash3(int32_t a, int32_t b, int32_t c, uint32_t mask) {
-  return ((uint32_t)a ^ ((uint32_t)b * P1) ^ ((uint32_t)c * P2)) & mask;
+bool use_avx2() {
+#ifdef PAG_HAVE_AVX2
+  static const bool ok = __builtin_cpu_supports("avx2") && std::getenv("PAG_NO_AVX2") == nullptr;
+  return ok;
+#else
+  return false;
+#endif
 }
 
-// One point at one level of the permutohedral lattice: the 4 hashed vertices, their barycentric
-// weights, and (optionally) d(weights)/d(elevated coords) encoded by the ranks.
-struct Simplex {
-  uint32_t idx[4];
-  float w[4];
-  int rank[4];
+#ifdef PAG_HAVE_AVX2
+avx2::LevelArgs avx2_args(const base::LevelArgs& a) { return {a.x, a.n, a.table, a.shift, a.coef, a.mask}; }
+#endif
+
+template <class Fn>
+void dispatch_features(int64_t f, Fn&& fn) {
+  switch (f) {
+    case 1: fn(std::integral_constant<int, 1>()); break;
+    case 2: fn(std::integral_constant<int, 2>()); break;
+    case 4: fn(std::integral_constant<int, 4>()); break;
+    case 8: fn(std::integral_constant<int, 8>()); break;
+    default: fn(std::integral_constant<int, 0>()); break;
+  }
+}
+
+// One level's passes through the right instruction set and feature count.
+enum class Kind { permuto, cubic };
+
+#ifdef PAG_HAVE_AVX2
+#define PAG_DISPATCH(call_base, call_avx2) \
+  if (use_avx2()) { call_avx2; } else { call_base; }
+#else
+#define PAG_DISPATCH(call_base, call_avx2) call_base;
+#endif
+
+void forward_level(Kind kind, const base::LevelArgs& a, int64_t F, float* out, float* jac) {
+  dispatch_features(F, [&](auto fs) {
+    constexpr int FS = decltype(fs)::value;
+    if (kind == Kind::permuto) {
+      PAG_DISPATCH((base::forward_level<base::Permuto, FS>(a, (int)F, out, jac)),
+                   (avx2::forward_level<avx2::Permuto, FS>(avx2_args(a), (int)F, out, jac)))
+    } else {
+      PAG_DISPATCH((base::forward_level<base::Cubic, FS>(a, (int)F, out, jac)),
+                   (avx2::forward_level<avx2::Cubic, FS>(avx2_args(a), (int)F, out, jac)))
+    }
+  });
+}
+
+void backward_level(Kind kind, const base::LevelArgs& a, int64_t F, const float* g, float* gtab, float* gxp) {
+  dispatch_features(F, [&](auto fs) {
+    constexpr int FS = decltype(fs)::value;
+    if (kind == Kind::permuto) {
+      PAG_DISPATCH((base::backward_level<base::Permuto, FS>(a, (int)F, g, gtab, gxp)),
+                   (avx2::backward_level<avx2::Permuto, FS>(avx2_args(a), (int)F, g, gtab, gxp)))
+    } else {
+      PAG_DISPATCH((base::backward_level<base::Cubic, FS>(a, (int)F, g, gtab, gxp)),
+                   (avx2::backward_level<avx2::Cubic, FS>(avx2_args(a), (int)F, g, gtab, gxp)))
+    }
+  });
+}
+
+void contract_level(int64_t n, int64_t F, const float* g, const float* jac, float* gxp) {
+  dispatch_features(F, [&](auto fs) {
+    constexpr int FS = decltype(fs)::value;
+    PAG_DISPATCH((base::contract_level<FS>(n, (int)F, g, jac, gxp)), (avx2::contract_level<FS>(n, (int)F, g, jac, gxp)))
+  });
+}
+
+// ---- memory: fresh multi-megabyte tensors cost a page fault per 4 KiB on every call (on these
+// VMs about 20 ms for a 32 MiB table gradient, as much as the kernel itself). Outputs therefore
+// come from a small process-wide pool of blocks returned by the tensors' deleters, and scratch
+// buffers are kept per thread.
+
+class BlockPool {
+ public:
+  static constexpr size_t kMaxCachedBytes = size_t(1) << 30;
+  static constexpr size_t kMaxPerClass = 4;
+
+  // Size classes 2^k * {4, 5, 6, 7} / 4 bound the waste to 25% when the batch size varies.
+  static size_t size_class(size_t bytes) {
+    size_t c = 4096;
+    while (c < bytes) {
+      if (c + c / 4 >= bytes) return c + c / 4;
+      if (c + c / 2 >= bytes) return c + c / 2;
+      if (c + 3 * (c / 4) >= bytes) return c + 3 * (c / 4);
+      c *= 2;
+    }
+    return c;
+  }
+
+  void* get(size_t bytes) {
+    {
+      std::lock_guard<std::mutex> lock(mu_);
+      auto it = free_.find(bytes);
+      if (it != free_.end() && !it->second.empty()) {
+        void* p = it->second.back();
+        it->second.pop_back();
+        cached_ -= bytes;
+        return p;
+      }
+    }
+    void* p = std::aligned_alloc(64, bytes);
+    if (!p) throw std::bad_alloc();
+    return p;
+  }
+
+  void put(void* p, size_t bytes) {
+    {
+      std::lock_guard<std::mutex> lock(mu_);
+      auto& v = free_[bytes];
+      if (v.size() < kMaxPerClass && cached_ + bytes <= kMaxCachedBytes) {
+        v.push_back(p);
+        cached_ += bytes;
+        return;
+      }
+    }
+    std::free(p);
+  }
+
+ private:
+  std::mutex mu_;
+  std::unordered_map<size_t, std::vector<void*>> free_;
+  size_t cached_ = 0;
 };
 
-inline void simplex(const float* p, const float* shift, float inv_scale, uint32_t mask, Simplex& s) {
-  // c_i = (p_i + r_i) / (sqrt((i+1)(i+2)) sigma)
-  const float c0 = (p[0] + shift[0]) * inv_scale * 0.70710678f;  // 1/sqrt(2)
-  const float c1 = (p[1] + shift[1]) * inv_scale * 0.40824829f;  // 1/sqrt(6)
-  const float c2 = (p[2] + shift[2]) * inv_scale * 0.28867513f;  // 1/sqrt(12)
-  float e[4] = {c0 + c1 + c2, c1 + c2 - c0, c2 - 2.f * c1, -3.f * c2};
-  int rem0[4];
-  float r[4];
-  int sum = 0;
-  for (int i = 0; i < 4; ++i) {
-    rem0[i] = 4 * (int)std::nearbyint(e[i] * 0.25f);  // nearest multiple of 4, ties to even
-    sum += rem0[i];
-    r[i] = e[i] - (float)rem0[i];
-  }
-  int rank[4] = {0, 0, 0, 0};
-  for (int i = 0; i < 3; ++i)
-    for (int j = i + 1; j < 4; ++j) {
-      if (r[i] < r[j]) ++rank[i]; else ++rank[j];
-    }
-  const int S = sum / 4;
-  for (int i = 0; i < 4; ++i) {
-    rank[i] += S;
-    if (rank[i] < 0) { rank[i] += 4; rem0[i] += 4; }
-    else if (rank[i] > 3) { rank[i] -= 4; rem0[i] -= 4; }
-  }
-  float b[5] = {0.f, 0.f, 0.f, 0.f, 0.f};
-  for (int i = 0; i < 4; ++i) {
-    const float t = (e[i] - (float)rem0[i]) * 0.25f;
-    b[3 - rank[i]] += t;
-    b[4 - rank[i]] -= t;
-  }
-  b[0] += 1.f + b[4];
-  for (int k = 0; k < 4; ++k) {
-    int key[3];
-    for (int i = 0; i < 3; ++i) key[i] = rem0[i] + k - ((rank[i] > 3 - k) ? 4 : 0);
-    s.idx[k] = hash3(key[0], key[1], key[2], mask);
-    s.w[k] = b[k];
-  }
-  for (int i = 0; i < 4; ++i) s.rank[i] = rank[i];
+BlockPool& pool() {
+  static BlockPool* p = new BlockPool();  // never destroyed: deleters may run during interpreter exit
+  return *p;
 }
 
-inline int nthreads() { return std::max(1, at::get_num_threads()); }
+torch::Tensor pooled_empty(at::IntArrayRef sizes) {
+  int64_t numel = 1;
+  for (int64_t s : sizes) numel *= s;
+  if (numel * (int64_t)sizeof(float) < (int64_t(1) << 20)) return torch::empty(sizes, torch::kFloat32);
+  const size_t bytes = BlockPool::size_class((size_t)numel * sizeof(float));
+  void* p = pool().get(bytes);
+  return torch::from_blob(p, sizes, [bytes](void* q) { pool().put(q, bytes); },
+                          torch::TensorOptions().dtype(torch::kFloat32));
+}
 
-void check(const torch::Tensor& x, const torch::Tensor& table, const torch::Tensor& scales,
+// Per-thread scratch that keeps its pages between calls.
+float* scratch(int slot, size_t n) {
+  thread_local std::vector<float> buf[3];
+  if (buf[slot].size() < n) buf[slot].resize(n);
+  return buf[slot].data();
+}
+
+void check(const torch::Tensor& x, const torch::Tensor& table, const torch::Tensor& coef,
            const torch::Tensor& shifts) {
   TORCH_CHECK(x.device().is_cpu() && x.scalar_type() == torch::kFloat32 && x.dim() == 2 && x.size(1) == 3,
-              "x must be a CPU float32 [N, 3] tensor");
-  TORCH_CHECK(table.scalar_type() == torch::kFloat32 && table.dim() == 3, "table must be float32 [L, T, F]");
-  const int64_t T = table.size(1);
-  TORCH_CHECK(T > 0 && (T & (T - 1)) == 0, "table capacity must be a power of two");
-  TORCH_CHECK(scales.size(0) == table.size(0) && shifts.size(0) == table.size(0), "one scale/shift per level");
+              "x must be a CPU float32 [N, 3] tensor, got ", x.sizes(), " ", x.scalar_type());
+  TORCH_CHECK(table.device().is_cpu() && table.scalar_type() == torch::kFloat32 && table.dim() == 3,
+              "table must be a CPU float32 [L, T, F] tensor, got ", table.sizes());
+  const int64_t L = table.size(0), T = table.size(1);
+  TORCH_CHECK(T > 0 && (T & (T - 1)) == 0 && T * table.size(2) < (int64_t(1) << 32),
+              "table capacity must be a power of two with T * F < 2^32, got T = ", T);
+  TORCH_CHECK(coef.scalar_type() == torch::kFloat32 && coef.dim() == 2 && coef.size(0) == L && coef.size(1) == 3,
+              "coef must be float32 [L, 3]");
+  TORCH_CHECK(shifts.scalar_type() == torch::kFloat32 && shifts.dim() == 2 && shifts.size(0) == L &&
+                  shifts.size(1) == 3, "shifts must be float32 [L, 3]");
+}
+
+int threads_for(int64_t items) {
+  return (int)std::max<int64_t>(1, std::min<int64_t>(at::get_num_threads(), items));
+}
+
+// [A, B, F] -> [B, A, F] in parallel (the level-major scratch <-> the [N, L * F] layout).
+void transpose_outer(const float* src, float* dst, int64_t A, int64_t B, int64_t F) {
+  constexpr int64_t CHUNK = 256;
+  const int64_t nchunks = (B + CHUNK - 1) / CHUNK;
+#pragma omp parallel for num_threads(threads_for(nchunks)) schedule(static)
+  for (int64_t c = 0; c < nchunks; ++c) {
+    const int64_t b0 = c * CHUNK, b1 = std::min(B, b0 + CHUNK);
+    for (int64_t a = 0; a < A; ++a)
+      for (int64_t b = b0; b < b1; ++b)
+        for (int64_t f = 0; f < F; ++f) dst[(b * A + a) * F + f] = src[(a * B + b) * F + f];
+  }
+}
+
+// x [N, 3] -> blocked structure of arrays (block b: [3][BLOCK] at 3 * b * BLOCK, zero-padded), the
+// layout the lattice code reads with plain vector loads. Kept in scratch slot 2.
+const float* blocked_points(const torch::Tensor& x) {
+  const int64_t N = x.size(0), nblocks = (N + BLOCK - 1) / BLOCK;
+  float* xs = scratch(2, (size_t)(nblocks * 3 * BLOCK));
+  const float* px = x.data_ptr<float>();
+#pragma omp parallel for num_threads(threads_for(nblocks / 64 + 1)) schedule(static)
+  for (int64_t b = 0; b < nblocks; ++b)
+    for (int d = 0; d < 3; ++d)
+      for (int64_t j = 0; j < BLOCK; ++j) {
+        const int64_t n = b * BLOCK + j;
+        xs[(b * 3 + d) * BLOCK + j] = n < N ? px[3 * n + d] : 0.f;
+      }
+  return xs;
+}
+
+// Features [N, L * F]; with need_jac also d features / d x as [L, 3 F, N] (planes per level),
+// which the backward contracts with grad_out instead of reading the table again.
+std::vector<torch::Tensor> forward_impl(Kind kind, torch::Tensor x, torch::Tensor table, torch::Tensor coef,
+                                        torch::Tensor shifts, bool need_jac) {
+  check(x, table, coef, shifts);
+  x = x.contiguous(); table = table.contiguous(); coef = coef.contiguous(); shifts = shifts.contiguous();
+  const int64_t N = x.size(0), L = table.size(0), T = table.size(1), F = table.size(2);
+  float* buf = scratch(0, (size_t)(L * N * F));  // [L, N, F]
+  auto jac = need_jac ? pooled_empty({L, 3 * F, N}) : torch::Tensor();
+  float* pj = need_jac ? jac.data_ptr<float>() : nullptr;
+  const float* px = blocked_points(x);
+  const float* pt = table.data_ptr<float>();
+  const float* pc = coef.data_ptr<float>();
+  const float* ps = shifts.data_ptr<float>();
+  const uint32_t mask = (uint32_t)(T - 1);
+#pragma omp parallel for num_threads(threads_for(L)) schedule(dynamic, 1)
+  for (int64_t i = 0; i < L; ++i) {
+    const int64_t l = L - 1 - i;  // finest (slowest) levels first: better balance at the end
+    forward_level(kind, base::LevelArgs{px, N, pt + l * T * F, ps + 3 * l, pc + 3 * l, mask}, F, buf + l * N * F,
+                  pj ? pj + l * 3 * F * N : nullptr);
+  }
+  auto out = pooled_empty({N, L * F});
+  transpose_outer(buf, out.data_ptr<float>(), L, N, F);
+  return {out, jac};
+}
+
+// (grad_table [L, T, F] or undefined, grad_x [N, 3] or undefined). grad_x comes from the forward's
+// jac when given, else from reading the table rows again.
+std::vector<torch::Tensor> backward_impl(Kind kind, torch::Tensor grad_out, torch::Tensor x, torch::Tensor table,
+                                         torch::Tensor coef, torch::Tensor shifts, std::optional<torch::Tensor> jac,
+                                         bool need_table, bool need_x) {
+  check(x, table, coef, shifts);
+  x = x.contiguous(); table = table.contiguous(); coef = coef.contiguous(); shifts = shifts.contiguous();
+  const int64_t N = x.size(0), L = table.size(0), T = table.size(1), F = table.size(2);
+  TORCH_CHECK(grad_out.scalar_type() == torch::kFloat32 && grad_out.dim() == 2 && grad_out.size(0) == N &&
+                  grad_out.size(1) == L * F, "grad_out must be float32 [N, L * F]");
+  const bool use_jac = need_x && jac.has_value() && jac->defined();
+  TORCH_CHECK(!use_jac || (jac->scalar_type() == torch::kFloat32 && jac->numel() == L * 3 * F * N),
+              "jac must be the float32 [L, 3 F, N] Jacobian from the forward");
+  grad_out = grad_out.contiguous();
+  if (!need_table && !need_x) return {torch::Tensor(), torch::Tensor()};
+  float* g = scratch(0, (size_t)(L * N * F));  // [L, N, F]
+  transpose_outer(grad_out.data_ptr<float>(), g, N, L, F);
+  const int nt = threads_for(L);
+  // d/dx: one [3, N] partial sum per thread (levels run concurrently), added up at the end
+  float* gx_parts = need_x ? scratch(1, (size_t)(nt * 3 * N)) : nullptr;
+  if (need_x) std::memset(gx_parts, 0, sizeof(float) * nt * 3 * N);
+  torch::Tensor jac_c = use_jac ? jac->contiguous() : torch::Tensor();
+  const float* pj = use_jac ? jac_c.data_ptr<float>() : nullptr;
+  auto gtable = need_table ? pooled_empty({L, T, F}) : torch::Tensor();
+  float* pgt = need_table ? gtable.data_ptr<float>() : nullptr;
+  const float* px = (gtable.defined() || !use_jac) ? blocked_points(x) : nullptr;
+  const float* pt = table.data_ptr<float>();
+  const float* pc = coef.data_ptr<float>();
+  const float* ps = shifts.data_ptr<float>();
+  const uint32_t mask = (uint32_t)(T - 1);
+#pragma omp parallel num_threads(nt)
+  {
+    float* gxp = gx_parts ? gx_parts + (int64_t)omp_get_thread_num() * 3 * N : nullptr;
+#pragma omp for schedule(dynamic, 1)
+    for (int64_t i = 0; i < L; ++i) {
+      const int64_t l = L - 1 - i;
+      float* gl = pgt ? pgt + l * T * F : nullptr;
+      if (gl) std::memset(gl, 0, sizeof(float) * T * F);  // zeroed here, by its only writer, just before use
+      if (gl || (gxp && !pj))
+        backward_level(kind, base::LevelArgs{px, N, pt + l * T * F, ps + 3 * l, pc + 3 * l, mask}, F,
+                       g + l * N * F, gl, pj ? nullptr : gxp);
+      if (gxp && pj) contract_level(N, F, g + l * N * F, pj + l * 3 * F * N, gxp);
+    }
+  }
+  torch::Tensor gx;
+  if (need_x) {
+    gx = torch::empty({N, 3}, x.options());
+    float* o = gx.data_ptr<float>();
+#pragma omp parallel for num_threads(threads_for(N / 4096 + 1)) schedule(static)
+    for (int64_t n = 0; n < N; ++n)
+      for (int d = 0; d < 3; ++d) {
+        float v = 0.f;
+        for (int t = 0; t < nt; ++t) v += gx_parts[((int64_t)t * 3 + d) * N + n];
+        o[3 * n + d] = v;
+      }
+  }
+  return {gtable, gx};
 }
 
 }  // namespace
 
-torch::Tensor permuto_forward(torch::Tensor x, torch::Tensor table, torch::Tensor scales, torch::Tensor shifts) {
-  check(x, table, scales, shifts);
-  x = x.contiguous(); table = table.contiguous();
-  const int64_t N = x.size(0), L = table.size(0), T = table.size(1), F = table.size(2);
-  auto out = torch::empty({N, L * F}, x.options());
-  const float* px = x.data_ptr<float>();
-  const float* pt = table.data_ptr<float>();
-  const float* ps = scales.contiguous().data_ptr<float>();
-  const float* psh = shifts.contiguous().data_ptr<float>();
-  float* po = out.data_ptr<float>();
-  const uint32_t mask = (uint32_t)(T - 1);
-  const int nt = nthreads();
-  for (int64_t l = 0; l < L; ++l) {
-    const float inv = 1.f / ps[l];
-    const float* tl = pt + l * T * F;
-#pragma omp parallel for num_threads(nt) schedule(static)
-    for (int64_t n0 = 0; n0 < N; n0 += BLOCK) {
-      // Compute a block of simplices first and prefetch their rows, so many table reads are in
-      // flight at once (the loop is bound by random-read latency, not arithmetic).
-      Simplex s[BLOCK];
-      const int64_t nb = std::min<int64_t>(BLOCK, N - n0);
-      for (int64_t j = 0; j < nb; ++j) {
-        simplex(px + 3 * (n0 + j), psh + 3 * l, inv, mask, s[j]);
-        for (int k = 0; k < 4; ++k) __builtin_prefetch(tl + (int64_t)s[j].idx[k] * F);
-      }
-      for (int64_t j = 0; j < nb; ++j) {
-        float* o = po + (n0 + j) * L * F + l * F;
-        for (int64_t f = 0; f < F; ++f) o[f] = 0.f;
-        for (int k = 0; k < 4; ++k) {
-          const float* row = tl + (int64_t)s[j].idx[k] * F;
-          for (int64_t f = 0; f < F; ++f) o[f] += s[j].w[k] * row[f];
-        }
-      }
-    }
-  }
-  return out;
+std::vector<torch::Tensor> permuto_forward(torch::Tensor x, torch::Tensor table, torch::Tensor coef,
+                                           torch::Tensor shifts, bool need_jac) {
+  return forward_impl(Kind::permuto, x, table, coef, shifts, need_jac);
 }
 
 std::vector<torch::Tensor> permuto_backward(torch::Tensor grad_out, torch::Tensor x, torch::Tensor table,
-                                            torch::Tensor scales, torch::Tensor shifts, bool need_table,
-                                            bool need_x) {
-  check(x, table, scales, shifts);
-  x = x.contiguous(); table = table.contiguous(); grad_out = grad_out.contiguous();
-  const int64_t N = x.size(0), L = table.size(0), T = table.size(1), F = table.size(2);
-  auto gtable = need_table ? torch::zeros_like(table) : torch::Tensor();
-  auto gx = need_x ? torch::zeros_like(x) : torch::Tensor();
-  const float* px = x.data_ptr<float>();
-  const float* pt = table.data_ptr<float>();
-  const float* pg = grad_out.data_ptr<float>();
-  const float* ps = scales.contiguous().data_ptr<float>();
-  const float* psh = shifts.contiguous().data_ptr<float>();
-  float* pgt = need_table ? gtable.data_ptr<float>() : nullptr;
-  float* pgx = need_x ? gx.data_ptr<float>() : nullptr;
-  const uint32_t mask = (uint32_t)(T - 1);
-  const int nt = nthreads();
-  std::vector<float> buffers(need_table && nt > 1 ? (size_t)(nt - 1) * T * F : 0);
-  for (int64_t l = 0; l < L; ++l) {
-    const float inv = 1.f / ps[l];
-    const float* tl = pt + l * T * F;
-    float* gl = need_table ? pgt + l * T * F : nullptr;
-    const float dc[3] = {inv * 0.70710678f, inv * 0.40824829f, inv * 0.28867513f};
-#pragma omp parallel num_threads(nt)
-    {
-      const int tid = omp_get_thread_num();
-      float* acc = nullptr;
-      if (need_table) {
-        acc = tid == 0 ? gl : buffers.data() + (size_t)(tid - 1) * T * F;
-        if (tid > 0) std::fill(acc, acc + T * F, 0.f);
-      }
-#pragma omp for schedule(static)
-      for (int64_t n0 = 0; n0 < N; n0 += BLOCK) {
-        Simplex sb[BLOCK];
-        const int64_t nb = std::min<int64_t>(BLOCK, N - n0);
-        for (int64_t j = 0; j < nb; ++j) {
-          simplex(px + 3 * (n0 + j), psh + 3 * l, inv, mask, sb[j]);
-          for (int k = 0; k < 4; ++k) {
-            if (need_table) __builtin_prefetch(acc + (int64_t)sb[j].idx[k] * F, 1);
-            if (need_x) __builtin_prefetch(tl + (int64_t)sb[j].idx[k] * F);
-          }
-        }
-        for (int64_t j = 0; j < nb; ++j) {
-        const int64_t n = n0 + j;
-        const Simplex& s = sb[j];
-        const float* g = pg + n * L * F + l * F;
-        if (need_table) {
-          for (int k = 0; k < 4; ++k) {
-            float* row = acc + (int64_t)s.idx[k] * F;
-            for (int64_t f = 0; f < F; ++f) row[f] += s.w[k] * g[f];
-          }
-        }
-        if (need_x) {
-          // d feature / d E_i = (T[v_{3-rank_i}] - T[v_{(4-rank_i) mod 4}]) / 4, dotted with grad_out
-          float dE[4];
-          for (int i = 0; i < 4; ++i) {
-            const int a = 3 - s.rank[i], b = (4 - s.rank[i]) & 3;
-            const float* ra = tl + (int64_t)s.idx[a] * F;
-            const float* rb = tl + (int64_t)s.idx[b] * F;
-            float d = 0.f;
-            for (int64_t f = 0; f < F; ++f) d += g[f] * (ra[f] - rb[f]);
-            dE[i] = 0.25f * d;
-          }
-          // E0 = c0+c1+c2, E1 = -c0+c1+c2, E2 = -2c1+c2, E3 = -3c2
-          const float dc0 = dE[0] - dE[1];
-          const float dc1 = dE[0] + dE[1] - 2.f * dE[2];
-          const float dc2 = dE[0] + dE[1] + dE[2] - 3.f * dE[3];
-          float* o = pgx + 3 * n;
-          o[0] += dc0 * dc[0];
-          o[1] += dc1 * dc[1];
-          o[2] += dc2 * dc[2];
-        }
-        }
-      }
-      if (need_table && nt > 1) {
-#pragma omp barrier
-#pragma omp for schedule(static)
-        for (int64_t i = 0; i < T * F; ++i) {
-          float v = 0.f;
-          for (int t = 0; t < nt - 1; ++t) v += buffers[(size_t)t * T * F + i];
-          gl[i] += v;
-        }
-      }
-    }
-  }
-  return {gtable, gx};
+                                            torch::Tensor coef, torch::Tensor shifts, std::optional<torch::Tensor> jac,
+                                            bool need_table, bool need_x) {
+  return backward_impl(Kind::permuto, grad_out, x, table, coef, shifts, jac, need_table, need_x);
 }
 
-// ---- cubic (trilinear, 8 corners) hash grid, same layout and care ------------------------------
-
-torch::Tensor cubic_forward(torch::Tensor x, torch::Tensor table, torch::Tensor scales, torch::Tensor shifts) {
-  check(x, table, scales, shifts);
-  x = x.contiguous(); table = table.contiguous();
-  const int64_t N = x.size(0), L = table.size(0), T = table.size(1), F = table.size(2);
-  auto out = torch::empty({N, L * F}, x.options());
-  const float* px = x.data_ptr<float>();
-  const float* pt = table.data_ptr<float>();
-  const float* ps = scales.contiguous().data_ptr<float>();
-  const float* psh = shifts.contiguous().data_ptr<float>();
-  float* po = out.data_ptr<float>();
-  const uint32_t mask = (uint32_t)(T - 1);
-  const int nt = nthreads();
-  for (int64_t l = 0; l < L; ++l) {
-    const float inv = 1.f / ps[l];
-    const float* tl = pt + l * T * F;
-#pragma omp parallel for num_threads(nt) schedule(static)
-    for (int64_t n = 0; n < N; ++n) {
-      float q[3], f[3];
-      int32_t i0[3];
-      for (int d = 0; d < 3; ++d) {
-        q[d] = (px[3 * n + d] + psh[3 * l + d]) * inv;
-        const float fl = std::floor(q[d]);
-        i0[d] = (int32_t)fl;
-        f[d] = q[d] - fl;
-      }
-      float* o = po + n * L * F + l * F;
-      for (int64_t c = 0; c < F; ++c) o[c] = 0.f;
-      for (int k = 0; k < 8; ++k) {
-        const int dx = k & 1, dy = (k >> 1) & 1, dz = (k >> 2) & 1;
-        const float w = (dx ? f[0] : 1.f - f[0]) * (dy ? f[1] : 1.f - f[1]) * (dz ? f[2] : 1.f - f[2]);
-        const float* row = tl + (int64_t)hash3(i0[0] + dx, i0[1] + dy, i0[2] + dz, mask) * F;
-        for (int64_t c = 0; c < F; ++c) o[c] += w * row[c];
-      }
-    }
-  }
-  return out;
+std::vector<torch::Tensor> cubic_forward(torch::Tensor x, torch::Tensor table, torch::Tensor coef,
+                                         torch::Tensor shifts, bool need_jac) {
+  return forward_impl(Kind::cubic, x, table, coef, shifts, need_jac);
 }
 
 std::vector<torch::Tensor> cubic_backward(torch::Tensor grad_out, torch::Tensor x, torch::Tensor table,
-                                          torch::Tensor scales, torch::Tensor shifts, bool need_table, bool need_x) {
-  check(x, table, scales, shifts);
-  x = x.contiguous(); table = table.contiguous(); grad_out = grad_out.contiguous();
-  const int64_t N = x.size(0), L = table.size(0), T = table.size(1), F = table.size(2);
-  auto gtable = need_table ? torch::zeros_like(table) : torch::Tensor();
-  auto gx = need_x ? torch::zeros_like(x) : torch::Tensor();
-  const float* px = x.data_ptr<float>();
-  const float* pt = table.data_ptr<float>();
-  const float* pg = grad_out.data_ptr<float>();
-  const float* ps = scales.contiguous().data_ptr<float>();
-  const float* psh = shifts.contiguous().data_ptr<float>();
-  float* pgt = need_table ? gtable.data_ptr<float>() : nullptr;
-  float* pgx = need_x ? gx.data_ptr<float>() : nullptr;
-  const uint32_t mask = (uint32_t)(T - 1);
-  const int nt = nthreads();
-  std::vector<float> buffers(need_table && nt > 1 ? (size_t)(nt - 1) * T * F : 0);
-  for (int64_t l = 0; l < L; ++l) {
-    const float inv = 1.f / ps[l];
-    const float* tl = pt + l * T * F;
-    float* gl = need_table ? pgt + l * T * F : nullptr;
-#pragma omp parallel num_threads(nt)
-    {
-      const int tid = omp_get_thread_num();
-      float* acc = nullptr;
-      if (need_table) {
-        acc = tid == 0 ? gl : buffers.data() + (size_t)(tid - 1) * T * F;
-        if (tid > 0) std::fill(acc, acc + T * F, 0.f);
-      }
-#pragma omp for schedule(static)
-      for (int64_t n = 0; n < N; ++n) {
-        float f[3];
-        int32_t i0[3];
-        for (int d = 0; d < 3; ++d) {
-          const float q = (px[3 * n + d] + psh[3 * l + d]) * inv;
-          const float fl = std::floor(q);
-          i0[d] = (int32_t)fl;
-          f[d] = q - fl;
-        }
-        const float* g = pg + n * L * F + l * F;
-        float gxl[3] = {0.f, 0.f, 0.f};
-        for (int k = 0; k < 8; ++k) {
-          const int dx = k & 1, dy = (k >> 1) & 1, dz = (k >> 2) & 1;
-          const float wx = dx ? f[0] : 1.f - f[0], wy = dy ? f[1] : 1.f - f[1], wz = dz ? f[2] : 1.f - f[2];
-          const uint32_t h = hash3(i0[0] + dx, i0[1] + dy, i0[2] + dz, mask);
-          if (need_table) {
-            float* row = acc + (int64_t)h * F;
-            const float w = wx * wy * wz;
-            for (int64_t c = 0; c < F; ++c) row[c] += w * g[c];
-          }
-          if (need_x) {
-            const float* row = tl + (int64_t)h * F;
-            float d = 0.f;
-            for (int64_t c = 0; c < F; ++c) d += g[c] * row[c];
-            gxl[0] += d * (dx ? 1.f : -1.f) * wy * wz;
-            gxl[1] += d * wx * (dy ? 1.f : -1.f) * wz;
-            gxl[2] += d * wx * wy * (dz ? 1.f : -1.f);
-          }
-        }
-        if (need_x) for (int d = 0; d < 3; ++d) pgx[3 * n + d] += gxl[d] * inv;
-      }
-      if (need_table && nt > 1) {
-#pragma omp barrier
-#pragma omp for schedule(static)
-        for (int64_t i = 0; i < T * F; ++i) {
-          float v = 0.f;
-          for (int t = 0; t < nt - 1; ++t) v += buffers[(size_t)t * T * F + i];
-          gl[i] += v;
-        }
-      }
-    }
-  }
-  return {gtable, gx};
+                                          torch::Tensor coef, torch::Tensor shifts, std::optional<torch::Tensor> jac,
+                                          bool need_table, bool need_x) {
+  return backward_impl(Kind::cubic, grad_out, x, table, coef, shifts, jac, need_table, need_x);
 }
 
-// The machine's limit: `reads` dependent-free random reads of F floats per point-level from a
-// table of the same size, summed so the compiler cannot drop them. Returns the checksum.
-double random_reads(int64_t n_points, int64_t n_levels, int64_t capacity, int64_t n_features, int64_t reads) {
-  std::vector<float> table((size_t)n_levels * capacity * n_features, 1.f);
-  const uint32_t mask = (uint32_t)(capacity - 1);
-  double total = 0.0;
-  const int nt = nthreads();
-  for (int64_t l = 0; l < n_levels; ++l) {
-    const float* tl = table.data() + l * capacity * n_features;
-#pragma omp parallel for num_threads(nt) reduction(+ : total) schedule(static)
-    for (int64_t n = 0; n < n_points; ++n) {
-      float s = 0.f;
-      for (int64_t k = 0; k < reads; ++k) {
-        const uint32_t h = hash3((int32_t)k, (int32_t)n, (int32_t)(l + 7 * k), mask);  // n scattered by the prime
-        for (int64_t f = 0; f < n_features; ++f) s += tl[(int64_t)h * n_features + f];
+// Hashed rows and barycentric weights of one level's simplices, from the kernel's own code (tests):
+// x [N, 3], coef [3], shift [3] -> ([N, 4] int64, [N, 4] float32).
+std::vector<torch::Tensor> permuto_simplices(torch::Tensor x, torch::Tensor coef, torch::Tensor shift, int64_t capacity) {
+  TORCH_CHECK(x.scalar_type() == torch::kFloat32 && x.dim() == 2 && x.size(1) == 3, "x must be float32 [N, 3]");
+  TORCH_CHECK(capacity > 0 && (capacity & (capacity - 1)) == 0, "capacity must be a power of two");
+  x = x.contiguous(); coef = coef.contiguous(); shift = shift.contiguous();
+  const int64_t N = x.size(0);
+  auto rows = torch::empty({N, 4}, x.options().dtype(torch::kInt64));
+  auto w = torch::empty({N, 4}, x.options());
+  base::Permuto::Stage s;
+  const float* xs = blocked_points(x);
+  for (int64_t n0 = 0; n0 < N; n0 += BLOCK) {
+    const int64_t nb = std::min<int64_t>(BLOCK, N - n0);
+    base::Permuto::locate(xs + 3 * n0, nb, shift.data_ptr<float>(), coef.data_ptr<float>(),
+                          (uint32_t)(capacity - 1), s);
+    for (int64_t j = 0; j < nb; ++j)
+      for (int k = 0; k < 4; ++k) {
+        rows.data_ptr<int64_t>()[4 * (n0 + j) + k] = s.row[k][j];
+        w.data_ptr<float>()[4 * (n0 + j) + k] = s.w[k][j];
       }
-      total += s;
+  }
+  return {rows, w};
+}
+
+// The machine's limit for this access pattern: per point and level, `reads` random reads and
+// `updates` random read-modify-writes (into a scratch table) of F floats, in a table like `table`
+// [L, T, F], scheduled like the kernels (one task per level, blocks of prefetched rows).
+// Returns a checksum so that nothing is optimised away.
+double random_access(torch::Tensor table, int64_t n_points, int64_t reads, int64_t updates) {
+  TORCH_CHECK(table.device().is_cpu() && table.scalar_type() == torch::kFloat32 && table.dim() == 3,
+              "table must be a CPU float32 [L, T, F] tensor");
+  TORCH_CHECK(reads >= 0 && updates >= 0 && reads + updates <= 16, "need 0 <= reads + updates <= 16");
+  table = table.contiguous();
+  const int64_t L = table.size(0), T = table.size(1), F = table.size(2);
+  TORCH_CHECK(T > 0 && (T & (T - 1)) == 0, "capacity must be a power of two");
+  auto upd = updates > 0 ? pooled_empty({L, T, F}) : torch::Tensor();
+  const float* pt = table.data_ptr<float>();
+  float* pu = updates > 0 ? upd.data_ptr<float>() : nullptr;
+  const uint32_t mask = (uint32_t)(T - 1);
+  const int64_t m = reads + updates;
+  double total = 0.0;
+#pragma omp parallel for num_threads(threads_for(L)) schedule(dynamic, 1) reduction(+ : total)
+  for (int64_t l = 0; l < L; ++l) {
+    const float* tl = pt + l * T * F;
+    float* ul = pu ? pu + l * T * F : nullptr;
+    if (ul) std::memset(ul, 0, sizeof(float) * T * F);
+    float s = 0.f;
+    uint32_t off[2][BLOCK][16];
+    auto locate = [&](int64_t n0, uint32_t (*o)[16]) {  // addresses of a block, prefetched
+      const int64_t nb = std::min<int64_t>(BLOCK, n_points - n0);
+      for (int64_t j = 0; j < nb; ++j)
+        for (int64_t k = 0; k < m; ++k) {
+          o[j][k] = base::hash3((int32_t)k, (int32_t)(n0 + j), (int32_t)l, mask) * (uint32_t)F;  // n scattered
+          if (k < reads) __builtin_prefetch(tl + o[j][k]);
+          else __builtin_prefetch(ul + o[j][k], 1);
+        }
+    };
+    if (n_points > 0) locate(0, off[0]);
+    int cur = 0;
+    for (int64_t n0 = 0; n0 < n_points; n0 += BLOCK, cur ^= 1) {
+      if (n0 + BLOCK < n_points) locate(n0 + BLOCK, off[cur ^ 1]);  // one block ahead, as the kernels
+      const int64_t nb = std::min<int64_t>(BLOCK, n_points - n0);
+      for (int64_t j = 0; j < nb; ++j) {
+        for (int64_t k = 0; k < reads; ++k)
+          for (int64_t f = 0; f < F; ++f) s += tl[off[cur][j][k] + f];
+        for (int64_t k = reads; k < m; ++k)
+          for (int64_t f = 0; f < F; ++f) ul[off[cur][j][k] + f] += 1.f;
+      }
     }
+    total += s;
   }
   return total;
 }
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
-  m.def("permuto_forward", &permuto_forward, "permutohedral hash encoding forward");
-  m.def("permuto_backward", &permuto_backward, "permutohedral hash encoding backward");
-  m.def("cubic_forward", &cubic_forward, "cubic hash grid forward");
-  m.def("cubic_backward", &cubic_backward, "cubic hash grid backward");
-  m.def("random_reads", &random_reads, "random-read microbenchmark");
+  m.def("permuto_forward", &permuto_forward, "permutohedral hash encoding forward: (features, jacobian)");
+  m.def("permuto_backward", &permuto_backward, "permutohedral hash encoding backward: (grad_table, grad_x)");
+  m.def("cubic_forward", &cubic_forward, "cubic hash grid forward: (features, jacobian)");
+  m.def("cubic_backward", &cubic_backward, "cubic hash grid backward: (grad_table, grad_x)");
+  m.def("permuto_simplices", &permuto_simplices, "hashed rows and barycentric weights of one level");
+  m.def("random_access", &random_access, "random read / read-modify-write microbenchmark");
 }
