@@ -10,10 +10,11 @@ STAMP := $(VENV)/.installed
 # The stage list is declared once, in pipeline/dag.py (importable without the venv).
 STAGES := $(shell python3 -c 'from pipeline.dag import STAGE_ORDER; print(*STAGE_ORDER)' 2>/dev/null)
 
-.PHONY: all test setup evaluate bench clean $(STAGES)
+.PHONY: all test setup bench clean $(sort $(STAGES) evaluate)
 
 all: $(STAMP)
 	$(PAG) all --seq $(SEQ) $(ARGS)
+	@echo "report: $(CURDIR)/data/processed/$(SEQ)/report/report.html"
 
 test: $(STAMP)
 	$(PY) -m pytest -q $(ARGS)
@@ -24,7 +25,7 @@ $(STAMP): pyproject.toml scripts/setup.sh
 	bash scripts/setup.sh
 	touch $@
 
-$(STAGES) evaluate: $(STAMP)
+$(sort $(STAGES) evaluate): $(STAMP)
 	$(PAG) $@ --seq $(SEQ) $(ARGS)
 
 bench: $(STAMP)

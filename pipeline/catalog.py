@@ -46,6 +46,7 @@ DATASETS: dict[str, Dataset] = {
         Dataset("nerf", "dir", "processed", "nerf", "per-window checkpoints and renders"),
         _t("panoptic_frames", "processed", "fused per-frame panoptic renders"),
         Dataset("panoptic", "dir", "processed", "panoptic", "fused panoptic PNGs with row-level fruit ids"),
+        _t("fruit_slots", "processed", "window instance slots mapped to row-level fruit ids"),
         _t("fruits", "processed", "one row per fruit of the row"),
         _t("counts", "processed", "fruit counts per class"),
         Dataset("fruit_map", "dir", "processed", "fruit_map", "fruit point cloud PLY"),

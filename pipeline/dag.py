@@ -17,6 +17,10 @@ STAGE_ORDER: tuple[str, ...] = (
     "depth_filter",
     "windows",
     "nerf_fit",
+    "panoptic_fusion",
+    "fruit_count",
+    "evaluate",
+    "report",
 )
 
 SOURCE_DATASETS: frozenset[str] = frozenset({"raw"})

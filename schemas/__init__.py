@@ -21,6 +21,7 @@ TABLES: tuple[str, ...] = (
     "window_poses",
     "window_metrics",
     "panoptic_frames",
+    "fruit_slots",
     "fruits",
     "counts",
     "evaluation",

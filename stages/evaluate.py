@@ -1,0 +1,260 @@
+"""Score the windows' renders, the detector and the fused fruit map against ground truth (where it exists)."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+from scipy.optimize import linear_sum_assignment
+
+import schemas
+from nerf.metrics import ate_rmse
+from nerf.panoptic_metrics import ConfusionAccumulator, PanopticAccumulator, dominant_ids, id_consistency
+from pipeline.classes import DEFAULT_CLASSES, N_CLASSES, THING_IDS, VOID
+from pipeline.images import read_label
+from pipeline.stage import StageContext
+from stages.panoptic_fusion import render_path
+
+INPUTS = ("raw", "frames", "windows", "window_poses", "window_metrics", "nerf", "gt_segments",
+          "panoptic_frames", "panoptic", "fruits", "counts")
+OUTPUTS = ("evaluation",)
+
+STUFF_IDS = tuple(c.id for c in DEFAULT_CLASSES if not c.is_thing)
+POSE_COLS = ["tx", "ty", "tz"]
+UNITS = {"psnr": "dB", "ate_odometry_m": "m", "ate_refined_m": "m", "count_gt": "fruits", "count_pred": "fruits",
+         "count_gt_near_row_all": "fruits", "fruits_matched": "fruits", "id_consistency_n_fruits": "fruits",
+         "n_frames": "frames", "n_frames_detector": "frames"}
+
+
+@dataclass(frozen=True)
+class Config:
+    match_max_distance_m: float = 0.05
+    """a predicted fruit matches a ground-truth fruit (Hungarian on centre distance) only within this distance."""
+    min_frames_id: int = 3
+    """fruits seen in at least this many frames are scored for ID consistency."""
+    min_gt_px: int = 4
+    """a ground-truth near-row fruit counts as seen (count_gt) with at least this many pixels, kept by the
+    depth filter, over the fused frames (panoptic_fusion drops slots smaller than its min_slot_px)."""
+
+    def __post_init__(self) -> None:
+        if not self.match_max_distance_m > 0:
+            raise ValueError(f"evaluate.match_max_distance_m must be > 0, got {self.match_max_distance_m}")
+        if self.min_frames_id < 1 or self.min_gt_px < 1:
+            raise ValueError("evaluate.min_frames_id and evaluate.min_gt_px must be >= 1")
+
+
+def void_far(sem: np.ndarray, inst: np.ndarray, far_ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Ground truth with the fruits the depth filter dropped (the far row) set to void: nobody is asked to
+    segment them, and a prediction lying on them is neither right nor wrong."""
+    if len(far_ids) == 0:
+        return sem, inst
+    far = np.isin(inst, far_ids) & np.isin(sem, THING_IDS)
+    return np.where(far, VOID, sem), np.where(far, 0, inst)
+
+
+def thing_instances(sem: np.ndarray, inst: np.ndarray) -> np.ndarray:
+    """Instance ids on thing pixels only (stuff pixels 0)."""
+    return np.where(np.isin(sem, THING_IDS), inst, 0)
+
+
+class PanopticScore:
+    """PQ / SQ / RQ, mIoU and fruit-ID consistency of one set of (pred, gt) panoptic images."""
+
+    def __init__(self) -> None:
+        self.pq = PanopticAccumulator(things=set(THING_IDS), stuff=set(STUFF_IDS))
+        self.conf = ConfusionAccumulator(N_CLASSES)
+        self.ids: list[dict[int, int]] = []
+        self.n = 0
+
+    def update(self, p_sem: np.ndarray, p_inst: np.ndarray, g_sem: np.ndarray, g_inst: np.ndarray,
+               fruit_ids: np.ndarray) -> None:
+        self.pq.update(p_sem, p_inst, g_sem, g_inst)
+        self.conf.update(p_sem, g_sem)
+        self.ids.append(dominant_ids(g_inst, thing_instances(p_sem, p_inst), fruit_ids))
+        self.n += 1
+
+    def metrics(self, min_frames: int, suffix: str = "") -> dict[str, float]:
+        if not self.n:
+            return {}
+        pq = self.pq.compute()
+        out = {f"pq{suffix}": pq["pq"], f"sq{suffix}": pq["sq"], f"rq{suffix}": pq["rq"],
+               f"pq_things{suffix}": pq["pq_things"], f"pq_stuff{suffix}": pq["pq_stuff"],
+               f"miou{suffix}": self.conf.miou()}
+        if not suffix:
+            share, n = id_consistency(self.ids, min_frames)
+            out.update(id_consistency=share, id_consistency_n_fruits=float(n))
+        return out
+
+
+class GroundTruth:
+    """Per-frame ground-truth panoptic images (far-row fruits voided) and the near-row fruit ids."""
+
+    def __init__(self, frames: pd.DataFrame, gt_segments: pd.DataFrame, data_root: Path):
+        self.frames = frames
+        self.root = data_root
+        seg = gt_segments
+        self.far = {int(f): g.instance_id.to_numpy() for f, g in seg[~seg.kept.astype(bool)].groupby("frame_id")}
+        self.near = {int(f): g.instance_id.to_numpy() for f, g in seg[seg.kept.astype(bool)].groupby("frame_id")}
+
+    def has(self, fid: int) -> bool:
+        fr = self.frames.loc[fid]
+        return isinstance(fr.gt_semantic_path, str) and isinstance(fr.gt_instance_path, str)
+
+    def load(self, fid: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        fr = self.frames.loc[fid]
+        sem = read_label(self.root / fr.gt_semantic_path, f"ground-truth semantic of frame {fid}")
+        inst = read_label(self.root / fr.gt_instance_path, f"ground-truth instance of frame {fid}")
+        sem, inst = void_far(sem, inst, self.far.get(fid, np.array([], int)))
+        return sem, inst, self.near.get(fid, np.array([], int))
+
+
+def load_pred(sem_path: Path, inst_path: Path, shape: tuple[int, int], what: str):
+    sem = read_label(sem_path, f"{what} semantic")
+    inst = read_label(inst_path, f"{what} instance")
+    if sem.shape != shape or inst.shape != shape:
+        raise ValueError(f"{what}: {sem_path} {sem.shape} / {inst_path} {inst.shape} differ from the ground "
+                         f"truth's {shape}")
+    return sem, inst
+
+
+def window_scores(inputs: dict, gt: GroundTruth, gt_poses: pd.DataFrame | None, cfg: Config,
+                  ctx: StageContext) -> list[tuple[str, str, float]]:
+    frames, windows = gt.frames, inputs["windows"]
+    poses, metrics = inputs["window_poses"], inputs["window_metrics"]
+    nerf_dir = Path(inputs["nerf"])
+    rows = []
+    for m in ctx.progress(metrics.itertuples(index=False), "windows", total=len(metrics)):
+        wid = int(m.window_id)
+        scope = f"window_{wid:03d}"
+        if m.status != "ok":
+            ctx.count("windows_failed_not_scored")
+            continue
+        out: dict[str, float] = {"psnr": float(m.val_psnr)}
+        nerf, det = PanopticScore(), PanopticScore()
+        val = windows[(windows.window_id == wid) & (windows.split == "val")].frame_id.astype(int)
+        for fid in val:
+            if not gt.has(fid):
+                continue
+            g_sem, g_inst, near = gt.load(fid)
+            sp, ip = render_path(nerf_dir, wid, "semantic", fid), render_path(nerf_dir, wid, "instance", fid)
+            if sp.is_file() and ip.is_file():
+                nerf.update(*load_pred(sp, ip, g_sem.shape, f"window {wid} render of frame {fid}"),
+                            g_sem, g_inst, near)
+            fr = frames.loc[fid]
+            if isinstance(fr.det_semantic_path, str) and isinstance(fr.det_instance_path, str):
+                det.update(*load_pred(gt.root / fr.det_semantic_path, gt.root / fr.det_instance_path, g_sem.shape,
+                                      f"detector output of frame {fid}"), g_sem, g_inst, near)
+        if nerf.n == 0 and len(val):
+            ctx.count("windows_without_panoptic_scores")
+        out.update(nerf.metrics(cfg.min_frames_id))
+        out.update(det.metrics(cfg.min_frames_id, "_detector"))
+        out.update(n_frames=float(nerf.n), n_frames_detector=float(det.n))
+        if gt_poses is not None:
+            wp = poses[poses.window_id == wid].merge(gt_poses, on="frame_id", suffixes=("", "_gt"))
+            wp = wp.merge(frames[["frame_id", *POSE_COLS]].reset_index(drop=True), on="frame_id", suffixes=("", "_odo"))
+            if len(wp):
+                g = wp[[f"{c}_gt" for c in POSE_COLS]].to_numpy()
+                out["ate_refined_m"] = ate_rmse(wp[POSE_COLS].to_numpy(), g)
+                out["ate_odometry_m"] = ate_rmse(wp[[f"{c}_odo" for c in POSE_COLS]].to_numpy(), g)
+        rows += [(scope, k, v) for k, v in out.items()]
+    return rows
+
+
+def match_fruits(pred: np.ndarray, gt: np.ndarray, max_m: float) -> list[tuple[int, int, float]]:
+    """One-to-one matches (pred index, gt index, distance) of centres [P, 3] and [G, 3] minimising the total
+    distance (Hungarian), pairs farther than max_m excluded."""
+    if len(pred) == 0 or len(gt) == 0:
+        return []
+    d = np.linalg.norm(pred[:, None] - gt[None], axis=2)
+    r, c = linear_sum_assignment(np.where(d <= max_m, d, 1e3 + d))  # large finite cost outside the gate
+    return [(int(i), int(j), float(d[i, j])) for i, j in zip(r, c) if d[i, j] <= max_m]
+
+
+def row_scores(inputs: dict, gt: GroundTruth, gt_fruits: pd.DataFrame | None, cfg: Config,
+               ctx: StageContext) -> list[tuple[str, str, float]]:
+    pf: pd.DataFrame = inputs["panoptic_frames"]
+    out: dict[str, float] = {}
+    fused = PanopticScore()
+    for r in ctx.progress(pf.itertuples(index=False), "fused frames", total=len(pf)):
+        fid = int(r.frame_id)
+        if not gt.has(fid):
+            continue
+        g_sem, g_inst, near = gt.load(fid)
+        fused.update(*load_pred(gt.root / r.semantic_path, gt.root / r.instance_path, g_sem.shape, f"fused frame {fid}"),
+                     g_sem, g_inst, near)
+    out.update(fused.metrics(cfg.min_frames_id))
+    if gt_fruits is not None:
+        fruits = inputs["fruits"]
+        pred = fruits[fruits.near_row.astype(bool)]
+        seg = inputs["gt_segments"]
+        seg = seg[seg.kept.astype(bool) & seg.frame_id.isin(pf.frame_id)]
+        px = seg.groupby("instance_id").area_px.sum()
+        near_ids = set(gt_fruits.loc[gt_fruits.near_row.astype(bool), "fruit_id"].astype(int))
+        seen = sorted(int(i) for i, n in px.items() if n >= cfg.min_gt_px and int(i) in near_ids)
+        g = gt_fruits.set_index("fruit_id").loc[seen]
+        n_gt, n_pred = len(g), int(inputs["counts"]["count"].sum())
+        out.update(count_gt=float(n_gt), count_pred=float(n_pred),
+                   count_error_rel=(n_pred - n_gt) / n_gt if n_gt else float("nan"),
+                   count_gt_near_row_all=float(len(near_ids)))
+        gxyz = g[["x_m", "y_m", "z_m"]].to_numpy(np.float64)
+        matches = match_fruits(pred[["x_m", "y_m", "z_m"]].to_numpy(np.float64), gxyz, cfg.match_max_distance_m)
+        out.update(fruits_matched=float(len(matches)),
+                   fruit_recall=len(matches) / n_gt if n_gt else float("nan"),
+                   fruit_precision=len(matches) / len(pred) if len(pred) else float("nan"))
+        if matches:
+            pi, gi, dist = (np.array(v) for v in zip(*matches))
+            gd = g.diameter_m.to_numpy()[gi]
+            out["centre_error_mean_m"] = float(dist.mean())
+            for col, name in (("diameter_m", "diameter"), ("diameter_spheroid_m", "diameter_spheroid"),
+                              ("diameter_sphere_m", "diameter_sphere"), ("diameter_pca_m", "diameter_pca")):
+                err = pred[col].to_numpy(np.float64)[pi] - gd
+                err = err[np.isfinite(err)]
+                if len(err):
+                    out[f"{name}_mae_m"] = float(np.abs(err).mean())
+                    out[f"{name}_bias_m"] = float(err.mean())
+                    if name == "diameter":
+                        out["diameter_median_abs_err_m"] = float(np.median(np.abs(err)))
+            out["class_accuracy"] = float(np.mean(pred.class_id.to_numpy()[pi] == g.class_id.to_numpy()[gi]))
+    return [("row", k, v) for k, v in out.items()]
+
+
+def unit(metric: str) -> str:
+    if metric in UNITS:
+        return UNITS[metric]
+    if metric.endswith("_m"):
+        return "m"
+    return "fraction" if metric.split("_")[0] in {"pq", "sq", "rq", "miou", "id", "fruit", "class", "count"} else ""
+
+
+def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]:
+    gt_dir = Path(inputs["raw"]) / "gt"
+    frames = inputs["frames"].set_index("frame_id", drop=False)
+    gt_poses = pd.read_parquet(gt_dir / "poses.parquet") if (gt_dir / "poses.parquet").is_file() else None
+    gt_fruits = pd.read_parquet(gt_dir / "fruits.parquet") if (gt_dir / "fruits.parquet").is_file() else None
+    for name, t, need in (("poses", gt_poses, {"frame_id", *POSE_COLS}),
+                          ("fruits", gt_fruits, {"fruit_id", "class_id", "x_m", "y_m", "z_m", "diameter_m", "near_row"})):
+        if t is not None and not need <= set(t.columns):
+            raise ValueError(f"evaluate: {gt_dir / (name + '.parquet')} lacks columns {sorted(need - set(t.columns))}; "
+                             f"columns: {list(t.columns)} (data/README.md, 'Ground truth of a synthetic row')")
+    has_panoptic_gt = frames.gt_semantic_path.notna().any()
+    if gt_poses is None and gt_fruits is None and not has_panoptic_gt:
+        ctx.note(f"no ground truth ({gt_dir} absent and no labelled frames): nothing to evaluate, table empty")
+        return {"evaluation": schemas.empty("evaluation")}
+    gt = GroundTruth(frames, inputs["gt_segments"], ctx.data_root)
+    rows = window_scores(inputs, gt, gt_poses, cfg, ctx)
+    per_window = pd.DataFrame(rows, columns=["scope", "metric", "value"])
+    means = per_window.groupby("metric", sort=False).value.mean()
+    rows += [("windows_mean", k, float(v)) for k, v in means.items()]
+    rows += row_scores(inputs, gt, gt_fruits, cfg, ctx)
+    out = pd.DataFrame(rows, columns=["scope", "metric", "value"])
+    out["value"] = out["value"].astype(np.float64)
+    out["unit"] = [unit(m) for m in out.metric]
+    row = out[out.scope == "row"].set_index("metric").value
+    for k in ("count_gt", "count_pred", "id_consistency", "diameter_mae_m"):
+        if k in row:
+            ctx.summary[f"row_{k}"] = round(float(row[k]), 4)
+    for k in ("pq", "miou", "pq_detector", "psnr"):
+        if k in means:
+            ctx.summary[f"mean_{k}"] = round(float(means[k]), 4)
+    return {"evaluation": out}

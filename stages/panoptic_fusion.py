@@ -1,0 +1,407 @@
+"""Fuse the windows' instance slots into row-level fruit ids and write per-frame panoptic PNGs with them."""
+from __future__ import annotations
+
+import os
+from collections import defaultdict
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+from scipy.optimize import linear_sum_assignment
+
+import schemas
+from nerf.geometry import pose_matrix
+from pipeline.classes import THING_IDS, VOID
+from pipeline.images import ImageError, read_label, write_png
+from pipeline.stage import StageContext
+
+INPUTS = ("frames", "windows", "window_poses", "window_metrics", "nerf")
+OUTPUTS = ("panoptic_frames", "panoptic", "fruit_slots")
+
+RENDER_KINDS = ("rgb", "depth", "semantic", "instance")
+DEPTH_SCALE_M = 0.001
+"""NeRF depth renders are 16-bit millimetres (data/README.md)."""
+
+
+@dataclass(frozen=True)
+class Config:
+    max_match_distance_m: float = 0.04
+    """two windows' slots are the same fruit only if their 3D centres are closer than this (about half a
+    sweet-pepper diameter: neighbouring fruits never touch closer, centre estimates of one fruit agree)."""
+    min_mask_iou: float = 0.3
+    """on frames both windows rendered, the two slots' masks must overlap at least this much (IoU pooled
+    over those frames); slots neither window shows there are matched on distance alone."""
+    split_distance_m: float = 0.08
+    """a slot whose per-frame centres form clusters farther apart than this inside one window is split into
+    several fruits (the NeRF gave one slot to two fruits at opposite ends of the frustum); 0 = never split."""
+    min_slot_px: int = 4
+    """slots with fewer pixels over all the window's frames are dropped (pixels become void)."""
+    max_points_per_view: int = 400
+    """3D points kept per slot and frame for the centre (evenly subsampled)."""
+
+    def __post_init__(self) -> None:
+        if not self.max_match_distance_m > 0:
+            raise ValueError(f"panoptic_fusion.max_match_distance_m must be > 0, got {self.max_match_distance_m}")
+        if not 0.0 <= self.min_mask_iou <= 1.0:
+            raise ValueError(f"panoptic_fusion.min_mask_iou must be in [0, 1], got {self.min_mask_iou}")
+        if self.split_distance_m < 0 or self.min_slot_px < 1 or self.max_points_per_view < 1:
+            raise ValueError("panoptic_fusion: split_distance_m must be >= 0, min_slot_px and "
+                             "max_points_per_view >= 1")
+
+
+# -- shared helpers (also used by fruit_count, evaluate and report) ---------------------------------------
+
+def render_path(nerf_dir: Path, window_id: int, kind: str, frame_id: int) -> Path:
+    """nerf/window_NNN/renders/<kind>_<frame>.png; <frame> zero-padded to 6 digits (as nerf_fit writes it)
+    or plain, whichever exists (the padded name when neither does)."""
+    d = nerf_dir / f"window_{window_id:03d}" / "renders"
+    padded = d / f"{kind}_{frame_id:06d}.png"
+    if padded.is_file():
+        return padded
+    plain = d / f"{kind}_{frame_id}.png"
+    return plain if plain.is_file() else padded
+
+
+def data_relpath(path: Path, data_root: Path) -> str:
+    """`path` relative to data/ (what tables store)."""
+    return Path(os.path.relpath(Path(path).resolve(), Path(data_root).resolve())).as_posix()
+
+
+def unproject(depth_m: np.ndarray, k: np.ndarray, c2w: np.ndarray, v: np.ndarray, u: np.ndarray) -> np.ndarray:
+    """World points [N, 3] of pixels (row v, column u) with z-depth `depth_m[v, u]` (pixel centres at
+    half-integers, OpenCV camera: x right, y down, z forward). k = (fx, fy, cx, cy), c2w [4, 4]."""
+    z = depth_m[v, u].astype(np.float64)
+    x = (u + 0.5 - k[2]) / k[0] * z
+    y = (v + 0.5 - k[3]) / k[1] * z
+    cam = np.stack([x, y, z], 1)                         # [N, 3]
+    return cam @ c2w[:3, :3].T + c2w[:3, 3]
+
+
+def robust_centre(points: np.ndarray, k_mad: float = 3.0) -> tuple[np.ndarray, np.ndarray]:
+    """Coordinate-wise median after dropping points whose distance to the median exceeds
+    median + k_mad * 1.4826 * MAD of the distances. Returns (centre [3], inlier mask [N])."""
+    med = np.median(points, 0)
+    d = np.linalg.norm(points - med, axis=1)
+    mad = 1.4826 * np.median(np.abs(d - np.median(d)))
+    keep = d <= np.median(d) + k_mad * max(mad, 1e-4)
+    return np.median(points[keep], 0), keep
+
+
+def subsample(n: int, cap: int) -> np.ndarray:
+    """Evenly spaced indices of at most `cap` of n items (deterministic)."""
+    return np.arange(n) if n <= cap else np.round(np.linspace(0, n - 1, cap)).astype(np.int64)
+
+
+def window_views(windows: pd.DataFrame, window_poses: pd.DataFrame, window_metrics: pd.DataFrame,
+                 nerf_dir: Path, ctx: StageContext) -> pd.DataFrame:
+    """(window_id, frame_id, offset, pose) of every rendered validation frame of the fitted windows.
+    Failed windows and windows without panoptic renders are skipped with a counted note; a window with
+    panoptic renders for some validation frames but not others is an error naming the missing file."""
+    ok = set(window_metrics.loc[window_metrics.status == "ok", "window_id"].astype(int))
+    for wid in sorted(set(window_metrics.window_id.astype(int)) - ok):
+        ctx.count("windows_failed_skipped")
+        ctx.note(f"window {wid} failed in nerf_fit; its frames are not fused")
+    val = windows[windows.split == "val"][["window_id", "frame_id", "offset"]]
+    v = val.merge(window_poses, on=["window_id", "frame_id"], how="inner", suffixes=("", "_pose"))
+    rows = []
+    for wid, g in v.groupby("window_id"):
+        if int(wid) not in ok:
+            continue
+        have = [all(render_path(nerf_dir, int(wid), k, int(f)).is_file() for k in ("semantic", "instance", "depth"))
+                for f in g.frame_id]
+        if not any(have):
+            ctx.count("windows_without_panoptic_renders")
+            ctx.note(f"window {wid}: no panoptic renders (semantic/instance/depth_<frame>.png) in "
+                     f"{nerf_dir / f'window_{int(wid):03d}' / 'renders'}; skipped")
+            continue
+        if not all(have):
+            f = int(g.frame_id.to_numpy()[~np.asarray(have)][0])
+            missing = [render_path(nerf_dir, int(wid), k, f) for k in ("semantic", "instance", "depth")]
+            raise ImageError(f"window {wid}, validation frame {f}: render "
+                             f"{next(p for p in missing if not p.is_file())} is missing while other validation "
+                             f"frames of the window have theirs; rerun `pag nerf_fit --force`")
+        rows.append(g)
+    if not rows:
+        return pd.DataFrame(columns=["window_id", "frame_id", "offset", "c2w"])
+    out = pd.concat(rows, ignore_index=True)
+    out["c2w"] = list(pose_matrix(out[["tx", "ty", "tz", "qx", "qy", "qz", "qw"]].to_numpy(np.float64)))
+    return out[["window_id", "frame_id", "offset", "c2w"]]
+
+
+def read_render(nerf_dir: Path, wid: int, fid: int, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(semantic, instance, depth in m) of one rendered frame, checked against the frame's image size."""
+    sem = read_label(render_path(nerf_dir, wid, "semantic", fid), f"window {wid} semantic render")
+    inst = read_label(render_path(nerf_dir, wid, "instance", fid), f"window {wid} instance render")
+    dpath = render_path(nerf_dir, wid, "depth", fid)
+    depth = read_label(dpath, f"window {wid} depth render").astype(np.float32) * np.float32(DEPTH_SCALE_M)
+    for name, a in (("semantic", sem), ("instance", inst), ("depth", depth)):
+        if a.shape != shape:
+            raise ImageError(f"window {wid}, frame {fid}: {name} render {render_path(nerf_dir, wid, name, fid)} is "
+                             f"{a.shape[1]}x{a.shape[0]}, frames.parquet says {shape[1]}x{shape[0]}")
+    return sem, inst, depth
+
+
+# -- fusion ----------------------------------------------------------------------------------------------
+
+@dataclass
+class SlotView:
+    """One slot of one window in one rendered frame."""
+
+    n_px: int
+    class_px: np.ndarray       # [N_CLASSES + 1] pixel counts per thing/stuff class
+    points: np.ndarray         # [n, 3] world points (subsampled)
+
+
+@dataclass
+class LocalFruit:
+    """A window-local fruit: (window, slot, part)."""
+
+    window_id: int
+    slot: int
+    part: int
+    frames: list[int]
+    n_px: int
+    class_id: int
+    centre: np.ndarray | None
+    fruit_id: int = 0
+    drop_reason: str = ""
+    members: list[int] = field(default_factory=list)
+
+
+def split_frames(frame_centres: dict[int, np.ndarray], dist_m: float) -> list[list[int]]:
+    """Single-linkage clusters of a slot's per-frame centres (frames without a centre join the largest)."""
+    fids = [f for f, c in frame_centres.items() if c is not None]
+    rest = [f for f, c in frame_centres.items() if c is None]
+    if dist_m <= 0 or len(fids) < 2:
+        return [sorted(fids + rest)]
+    pts = np.stack([frame_centres[f] for f in fids])
+    parent = list(range(len(fids)))
+
+    def find(i: int) -> int:
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = parent[i]
+        return i
+
+    d = np.linalg.norm(pts[:, None] - pts[None], axis=2)
+    for i, j in zip(*np.nonzero(np.triu(d <= dist_m, 1))):
+        parent[find(i)] = find(j)
+    groups: dict[int, list[int]] = defaultdict(list)
+    for i, f in enumerate(fids):
+        groups[find(i)].append(f)
+    out = sorted((sorted(g) for g in groups.values()), key=lambda g: (-len(g), g[0]))
+    out[0] = sorted(out[0] + rest)
+    return out
+
+
+def pair_cost(a: LocalFruit, b: LocalFruit, masks: dict[tuple[int, int], np.ndarray],
+              part_of: dict[tuple[int, int, int], int], cfg: Config) -> float:
+    """Matching cost of two local fruits of different windows (inf = not the same fruit):
+    distance / gate + (1 - IoU) with IoU pooled over the frames both windows rendered (0.5 if neither
+    shows the fruit on any such frame)."""
+    if a.centre is None or b.centre is None:
+        return np.inf
+    dist = float(np.linalg.norm(a.centre - b.centre))
+    if dist > cfg.max_match_distance_m:
+        return np.inf
+    inter = union = 0
+    for (w, f), m in masks.items():
+        if w != a.window_id or (b.window_id, f) not in masks:
+            continue
+        ma = (m == a.slot) & (part_of.get((a.window_id, a.slot, f), -1) == a.part)
+        mb = (masks[(b.window_id, f)] == b.slot) & (part_of.get((b.window_id, b.slot, f), -1) == b.part)
+        inter += int(np.count_nonzero(ma & mb))
+        union += int(np.count_nonzero(ma | mb))
+    if union == 0:
+        iou = 0.5
+    else:
+        iou = inter / union
+        if iou < cfg.min_mask_iou:
+            return np.inf
+    return dist / cfg.max_match_distance_m + (1.0 - iou)
+
+
+def associate(fruits: list[LocalFruit], masks: dict[tuple[int, int], np.ndarray],
+              part_of: dict[tuple[int, int, int], int], cfg: Config) -> list[list[int]]:
+    """Groups of local-fruit indices that are one fruit. Per window pair a Hungarian assignment on
+    `pair_cost`; accepted pairs are then merged cheapest first (union-find) unless the merge would put
+    two local fruits of the same window into one fruit."""
+    by_window: dict[int, list[int]] = defaultdict(list)
+    for i, lf in enumerate(fruits):
+        if lf.centre is not None:
+            by_window[lf.window_id].append(i)
+    wids = sorted(by_window)
+    edges: list[tuple[float, int, int]] = []
+    for a_i, wa in enumerate(wids):
+        for wb in wids[a_i + 1:]:
+            ia, ib = by_window[wa], by_window[wb]
+            ca = np.stack([fruits[i].centre for i in ia])
+            cb = np.stack([fruits[i].centre for i in ib])
+            near = np.linalg.norm(ca[:, None] - cb[None], axis=2) <= cfg.max_match_distance_m
+            if not near.any():
+                continue
+            cost = np.full(near.shape, np.inf)
+            for r, c in zip(*np.nonzero(near)):
+                cost[r, c] = pair_cost(fruits[ia[r]], fruits[ib[c]], masks, part_of, cfg)
+            finite = np.isfinite(cost)
+            if not finite.any():
+                continue
+            rows, cols = linear_sum_assignment(np.where(finite, cost, 1e6))  # large finite, never inf
+            edges += [(float(cost[r, c]), ia[r], ib[c]) for r, c in zip(rows, cols) if finite[r, c]]
+    parent = list(range(len(fruits)))
+    members_w = [{lf.window_id} for lf in fruits]
+
+    def find(i: int) -> int:
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = parent[i]
+        return i
+
+    for _, i, j in sorted(edges):
+        ri, rj = find(i), find(j)
+        if ri != rj and not (members_w[ri] & members_w[rj]):
+            parent[rj] = ri
+            members_w[ri] |= members_w[rj]
+    groups: dict[int, list[int]] = defaultdict(list)
+    for i, lf in enumerate(fruits):
+        if lf.centre is not None:
+            groups[find(i)].append(i)
+    return list(groups.values())
+
+
+def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]:
+    frames: pd.DataFrame = inputs["frames"].set_index("frame_id", drop=False)
+    nerf_dir = Path(inputs["nerf"])
+    views = window_views(inputs["windows"], inputs["window_poses"], inputs["window_metrics"], nerf_dir, ctx)
+    out_dir = ctx.output_dir("panoptic")
+    (out_dir / "semantic").mkdir(parents=True, exist_ok=True)
+    (out_dir / "instance").mkdir(parents=True, exist_ok=True)
+    if views.empty:
+        ctx.note("no window has panoptic renders: nothing fused, tables are empty")
+        ctx.summary.update(frames=0, fruits=0)
+        return {"panoptic_frames": schemas.empty("panoptic_frames"), "fruit_slots": schemas.empty("fruit_slots")}
+    missing = sorted(set(views.frame_id.astype(int)) - set(frames.index.astype(int)))
+    if missing:
+        raise ValueError(f"panoptic_fusion: window_poses/windows list frames {missing[:10]} that are not in "
+                         f"frames.parquet; rerun the pipeline from ingest")
+    shared = views.groupby("frame_id").window_id.nunique()
+    shared_frames = set(shared[shared > 1].index.astype(int))
+    n_cls = max(THING_IDS) + 1
+
+    # pass 1: per (window, slot, frame) pixel counts, classes and world points
+    slot_views: dict[tuple[int, int], dict[int, SlotView]] = defaultdict(dict)
+    masks: dict[tuple[int, int], np.ndarray] = {}
+    for r in ctx.progress(views.itertuples(index=False), "read renders", total=len(views)):
+        wid, fid = int(r.window_id), int(r.frame_id)
+        fr = frames.loc[fid]
+        sem, inst, depth = read_render(nerf_dir, wid, fid, (int(fr.height), int(fr.width)))
+        thing = np.isin(sem, THING_IDS) & (inst > 0)
+        if fid in shared_frames:
+            masks[(wid, fid)] = np.where(thing, inst, 0).astype(np.int32)
+        if not thing.any():
+            continue
+        v, u = np.nonzero(thing)
+        ids = inst[v, u]
+        order = np.argsort(ids, kind="stable")
+        v, u, ids = v[order], u[order], ids[order]
+        starts = np.flatnonzero(np.r_[True, ids[1:] != ids[:-1]])
+        k = np.array([fr.fx, fr.fy, fr.cx, fr.cy], np.float64)
+        for s0, s1 in zip(starts, np.r_[starts[1:], len(ids)]):
+            vv, uu = v[s0:s1], u[s0:s1]
+            good = depth[vv, uu] > 0
+            pick = subsample(int(good.sum()), cfg.max_points_per_view)
+            pts = unproject(depth, k, r.c2w, vv[good][pick], uu[good][pick])
+            cls = np.bincount(sem[vv, uu], minlength=n_cls)[:n_cls]
+            slot_views[(wid, int(ids[s0]))][fid] = SlotView(int(s1 - s0), cls, pts)
+
+    # pass 2: window-local fruits (slots, split where their per-frame centres disagree)
+    local: list[LocalFruit] = []
+    part_of: dict[tuple[int, int, int], int] = {}
+    for (wid, slot), per_frame in sorted(slot_views.items()):
+        centres = {f: (np.median(sv.points, 0) if len(sv.points) else None) for f, sv in per_frame.items()}
+        parts = split_frames(centres, cfg.split_distance_m)
+        if len(parts) > 1:
+            ctx.count("slots_split")
+        for p, fids in enumerate(parts):
+            svs = [per_frame[f] for f in fids]
+            n_px = sum(sv.n_px for sv in svs)
+            pts = np.concatenate([sv.points for sv in svs])
+            cls = int(np.argmax(sum(sv.class_px for sv in svs)))
+            lf = LocalFruit(wid, slot, p, fids, n_px, cls, None)
+            if n_px < cfg.min_slot_px:
+                lf.drop_reason = f"{n_px} px < min_slot_px {cfg.min_slot_px}"
+            elif len(pts) == 0:
+                lf.drop_reason = "no pixel with valid rendered depth"
+            else:
+                lf.centre = robust_centre(pts)[0]
+            for f in fids:
+                part_of[(wid, slot, f)] = p
+            local.append(lf)
+
+    # pass 3: associate across windows; row-level ids increase along the row (x, then z)
+    groups = associate(local, masks, part_of, cfg)
+    gcentre = [np.median(np.stack([local[i].centre for i in g]), 0) for g in groups]
+    order = sorted(range(len(groups)), key=lambda j: (gcentre[j][0], gcentre[j][2], gcentre[j][1]))
+    if len(order) > 65535:
+        raise ValueError(f"panoptic_fusion: {len(order)} fruits do not fit 16-bit instance PNGs (max 65535)")
+    for fruit_id, j in enumerate(order, start=1):
+        for i in groups[j]:
+            local[i].fruit_id = fruit_id
+    dropped = [lf for lf in local if lf.fruit_id == 0]
+    ctx.count("slots", len(local))
+    ctx.count("slots_dropped", len(dropped))
+    lut: dict[tuple[int, int, int], int] = {}
+    for lf in local:
+        for f in lf.frames:
+            lut[(lf.window_id, lf.slot, f)] = lf.fruit_id
+
+    # pass 4: one fused panoptic image per frame, from the window whose centre is nearest
+    pick = views.assign(abs_off=views.offset.abs()).sort_values(["frame_id", "abs_off", "window_id"])
+    n_win = views.groupby("frame_id").window_id.nunique()
+    rows = []
+    for r in ctx.progress(pick.drop_duplicates("frame_id").itertuples(index=False), "write fused frames",
+                          total=int(pick.frame_id.nunique())):
+        wid, fid = int(r.window_id), int(r.frame_id)
+        fr = frames.loc[fid]
+        sem, inst, _ = read_render(nerf_dir, wid, fid, (int(fr.height), int(fr.width)))
+        thing = np.isin(sem, THING_IDS) & (inst > 0)
+        out_inst = np.zeros(inst.shape, np.uint16)
+        out_sem = sem.astype(np.uint8)
+        for slot in np.unique(inst[thing]):
+            m = thing & (inst == slot)
+            fruit_id = lut.get((wid, int(slot), fid), 0)
+            if fruit_id:
+                out_inst[m] = fruit_id
+            else:
+                out_sem[m] = VOID
+        name = f"{fid:06d}.png"
+        write_png(out_dir / "semantic" / name, out_sem)
+        write_png(out_dir / "instance" / name, out_inst)
+        rows.append({"frame_id": fid, "stamp_ns": int(fr.stamp_ns), "window_id": wid, "offset": int(r.offset),
+                     "n_windows": int(n_win[fid]),
+                     "semantic_path": ctx.relpath("panoptic", f"semantic/{name}"),
+                     "instance_path": ctx.relpath("panoptic", f"instance/{name}"),
+                     "rgb_path": data_relpath(render_path(nerf_dir, wid, "rgb", fid), ctx.data_root),
+                     "depth_path": data_relpath(render_path(nerf_dir, wid, "depth", fid), ctx.data_root),
+                     "n_fruits": int(len(np.unique(out_inst[out_inst > 0])))})
+    slots = pd.DataFrame([{
+        "window_id": lf.window_id, "slot": lf.slot, "part": lf.part, "fruit_id": lf.fruit_id,
+        "class_id": lf.class_id, "n_frames": len(lf.frames), "n_px": lf.n_px,
+        "x_m": None if lf.centre is None else float(lf.centre[0]),
+        "y_m": None if lf.centre is None else float(lf.centre[1]),
+        "z_m": None if lf.centre is None else float(lf.centre[2]),
+        "drop_reason": lf.drop_reason} for lf in local], columns=schemas.get("fruit_slots").names)
+    ctx.summary.update(windows=int(views.window_id.nunique()), frames=len(rows), fruits=len(groups),
+                       frames_in_several_windows=len(shared_frames))
+    return {"panoptic_frames": pd.DataFrame(rows, columns=schemas.get("panoptic_frames").names),
+            "fruit_slots": slots}
+
+
+def id_colours(ids: np.ndarray) -> np.ndarray:
+    """Distinct, deterministic RGB colours [N, 3] uint8 for instance ids (golden-ratio hues)."""
+    import colorsys
+
+    ids = np.asarray(ids, np.int64).ravel()
+    out = np.array([colorsys.hsv_to_rgb((i * 0.618033988749895) % 1.0, 0.75, 0.95) for i in ids]).reshape(-1, 3)
+    return (out * 255).round().astype(np.uint8)

@@ -1,0 +1,105 @@
+"""A tiny synthetic row run up to `windows`, plus nerf_fit outputs fabricated from its ground truth.
+
+The NeRF stage is slow and its panoptic renders are not what these tests are about, so `fabricate_nerf`
+writes what nerf_fit's contract promises (data/README.md), built from the exact ground truth: per window,
+every validation frame's rgb / depth (mm) / semantic / instance PNGs, with instance ids permuted per
+window (window-local slots), window_poses = the true camera poses, window_metrics all 'ok'.
+"""
+from __future__ import annotations
+
+import shutil
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from pipeline import io
+from pipeline.images import read_label, write_png
+from pipeline.runner import Runner
+
+SEQ = "synth_fm"
+TINY = ["synth.n_frames=16", "synth.width=128", "synth.height=72", "synth.n_labelled=3", "synth.supersample=1",
+        "synth.workers=1", "synth.write_bag=false", "synth.seed=4", "windows.half_width=5"]
+POSE_COLS = ["tx", "ty", "tz", "qx", "qy", "qz", "qw"]
+
+
+class Row:
+    """Paths and tables of one prepared tiny row."""
+
+    def __init__(self, root: Path):
+        self.root = root
+        self.interim = root / "interim" / SEQ
+        self.processed = root / "processed" / SEQ
+        self.raw = root / "raw" / SEQ
+        self.frames = pd.read_parquet(self.interim / "frames.parquet")
+        self.windows = pd.read_parquet(self.interim / "windows.parquet")
+        self.gt_fruits = pd.read_parquet(self.raw / "gt" / "fruits.parquet")
+        self.gt_poses = pd.read_parquet(self.raw / "gt" / "poses.parquet")
+        self.gt_segments = pd.read_parquet(self.interim / "gt_segments.parquet")
+
+    def runner(self, *extra: str) -> Runner:
+        return Runner(SEQ, data_root=self.root, overrides=[*TINY, *extra], show_progress=False)
+
+
+SlotHook = Callable[[int, int, np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
+"""(window_id, frame_id, semantic, slots) -> (semantic, slots): a perturbation of one rendered frame."""
+
+
+def fabricate_nerf(row: Row, seed: int = 0, hook: SlotHook | None = None) -> None:
+    """Write window_poses, window_metrics and nerf/window_NNN/renders/ from the ground truth."""
+    rng = np.random.default_rng(seed)
+    nerf = row.processed / "nerf"
+    shutil.rmtree(nerf, ignore_errors=True)
+    frames = row.frames.set_index("frame_id")
+    gt = row.gt_poses.set_index("frame_id")
+    max_id = int(row.gt_fruits.fruit_id.max())
+    pose_rows, metric_rows = [], []
+    for wid, w in row.windows.groupby("window_id"):
+        perm = np.r_[0, rng.permutation(max_id) + 1 + 7 * int(wid)]      # window-local slots, 0 stays stuff
+        rdir = nerf / f"window_{wid:03d}" / "renders"
+        rdir.mkdir(parents=True)
+        for r in w.itertuples(index=False):
+            fr = frames.loc[r.frame_id]
+            odo = fr[POSE_COLS].to_numpy(np.float64)
+            true = gt.loc[r.frame_id, POSE_COLS].to_numpy(np.float64)
+            pose_rows.append({"window_id": wid, "frame_id": r.frame_id, "split": r.split, "source": "odometry",
+                              "refined": True, **dict(zip(POSE_COLS, true)),
+                              "delta_t_m": float(np.linalg.norm(true[:3] - odo[:3])), "delta_rot_deg": 0.0})
+            if r.split != "val":
+                continue
+            sem = read_label(row.root / fr.gt_semantic_path, "gt").astype(np.uint8)
+            inst = read_label(row.root / fr.gt_instance_path, "gt")
+            slots = perm[inst]
+            if hook is not None:
+                sem, slots = hook(int(wid), int(r.frame_id), sem, slots)
+            name = f"{r.frame_id:06d}.png"
+            shutil.copy(row.root / fr.rgb_path, rdir / f"rgb_{name}")
+            shutil.copy(row.root / fr.depth_path, rdir / f"depth_{name}")
+            write_png(rdir / f"semantic_{name}", sem.astype(np.uint8))
+            write_png(rdir / f"instance_{name}", slots.astype(np.uint16))
+        metric_rows.append({"window_id": wid, "center_frame_id": int(w.center_frame_id.iloc[0]), "status": "ok",
+                            "error": "", "preset": "cpu", "device": "cpu", "threads": 1,
+                            "n_train": int((w.split == "train").sum()), "n_val": int((w.split == "val").sum()),
+                            "params": 1000, "steps": 10, "fit_s": 1.5 + wid, "render_s_per_image": 0.1,
+                            "samples_per_ray": 8.0, "val_psnr": 25.0 + wid, "train_psnr": 26.0,
+                            "checkpoint_path": f"processed/{SEQ}/nerf/window_{wid:03d}/checkpoint.pt"})
+    io.write_table(pd.DataFrame(pose_rows), row.processed / "window_poses.parquet", "window_poses")
+    io.write_table(pd.DataFrame(metric_rows), row.processed / "window_metrics.parquet", "window_metrics")
+
+
+def copy_row(upstream: Path, dest: Path, seed: int = 0, hook: SlotHook | None = None) -> Row:
+    """A fresh copy of the upstream row under `dest` with fabricated NeRF outputs."""
+    shutil.copytree(upstream, dest, symlinks=True)
+    row = Row(dest)
+    fabricate_nerf(row, seed, hook)
+    return row
+
+
+def run_stages(row: Row, *extra: str) -> None:
+    row.runner(*extra).run(list(FRUITMAP_STAGES), force=True)
+
+
+FRUITMAP_STAGES = ("panoptic_fusion", "fruit_count", "evaluate", "report")
+
+

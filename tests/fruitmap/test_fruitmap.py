@@ -1,0 +1,284 @@
+"""panoptic_fusion, fruit_count, evaluate and report on a tiny synthetic row with renders fabricated from
+ground truth (conftest.py): perfect input must give the ground truth back, perturbed input worse scores."""
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+import pyarrow.parquet as pq
+import pytest
+
+from pipeline import cli
+from pipeline.classes import THING_IDS
+from pipeline.images import ImageError, read_label
+from pipeline.stage import StageContext
+from stages import evaluate, fruit_count, panoptic_fusion, report
+
+from fruitmap_fixture import SEQ, TINY, run_stages
+
+
+def gt_to_fused(row) -> tuple[dict[int, set[int]], dict[int, set[int]], dict[int, int]]:
+    """From the fused PNGs and the ground-truth PNGs of the same frames: gt fruit -> fused ids on its pixels,
+    fused id -> gt fruits under it, and gt fruit -> its pixels over the fused frames."""
+    pf = pd.read_parquet(row.processed / "panoptic_frames.parquet")
+    frames = row.frames.set_index("frame_id")
+    g2f: dict[int, set[int]] = {}
+    f2g: dict[int, set[int]] = {}
+    px: dict[int, int] = {}
+    for r in pf.itertuples():
+        fused = read_label(row.root / r.instance_path, "fused")
+        g_sem = read_label(row.root / frames.loc[r.frame_id, "gt_semantic_path"], "gt")
+        g_inst = read_label(row.root / frames.loc[r.frame_id, "gt_instance_path"], "gt")
+        thing = np.isin(g_sem, THING_IDS) & (g_inst > 0)
+        for g, f in set(zip(g_inst[thing].tolist(), fused[thing].tolist())):
+            g2f.setdefault(g, set()).add(f)
+            f2g.setdefault(f, set()).add(g)
+        ids, n = np.unique(g_inst[thing], return_counts=True)
+        for g, k in zip(ids.tolist(), n.tolist()):
+            px[g] = px.get(g, 0) + k
+    return g2f, f2g, px
+
+
+def evaluation(row) -> pd.DataFrame:
+    return pd.read_parquet(row.processed / "evaluation.parquet")
+
+
+def metric(ev: pd.DataFrame, scope: str, name: str) -> float:
+    v = ev[(ev.scope == scope) & (ev.metric == name)].value
+    assert len(v) == 1, (scope, name, sorted(ev.metric.unique()))
+    return float(v.iloc[0])
+
+
+# -- panoptic_fusion -------------------------------------------------------------------------------------
+
+def test_fusion_gives_one_row_level_id_per_ground_truth_fruit(perfect_row):
+    g2f, f2g, px = gt_to_fused(perfect_row)
+    kept = {g: f - {0} for g, f in g2f.items()}
+    # every fruit with enough pixels has exactly one fused id, and no fused id covers two fruits
+    assert all(len(f) == 1 for g, f in kept.items() if px[g] >= 4 * 3), {g: f for g, f in kept.items() if len(f) != 1}
+    assert all(len(g) == 1 for f, g in f2g.items() if f), {f: g for f, g in f2g.items() if f and len(g) > 1}
+    slots = pd.read_parquet(perfect_row.processed / "fruit_slots.parquet")
+    multi = slots[slots.fruit_id > 0].groupby("fruit_id").window_id.nunique()
+    assert (multi >= 2).sum() >= 3, "fruits seen by several windows must have been fused across them"
+    pf = pd.read_parquet(perfect_row.processed / "panoptic_frames.parquet")
+    assert pf.frame_id.is_unique and (pf.n_windows >= 1).all() and (pf.n_windows > 1).any()
+    # frames shared by two windows come from the window whose centre is nearest
+    w = perfect_row.windows
+    for r in pf[pf.n_windows > 1].itertuples():
+        offs = w[(w.frame_id == r.frame_id) & (w.split == "val")].offset.abs()
+        assert abs(r.offset) == offs.min()
+
+
+def test_fusion_does_not_depend_on_the_windows_slot_numbers(make_row, perfect_row):
+    other = make_row(seed=11)
+    run_stages(other)
+    a = pd.read_parquet(perfect_row.processed / "fruits.parquet")
+    b = pd.read_parquet(other.processed / "fruits.parquet")
+    assert len(a) == len(b)
+    np.testing.assert_allclose(a[["x_m", "y_m", "z_m"]], b[["x_m", "y_m", "z_m"]], atol=1e-9)
+
+
+def test_split_slots_become_separate_fruits_and_close_slots_never_merge_within_a_window():
+    cfg = panoptic_fusion.Config(max_match_distance_m=0.05)
+    c = np.zeros(3)
+    fruits = [panoptic_fusion.LocalFruit(0, 1, 0, [0], 50, 2, c),
+              panoptic_fusion.LocalFruit(0, 2, 0, [0], 50, 2, c + [0.01, 0, 0]),
+              panoptic_fusion.LocalFruit(1, 5, 0, [2], 50, 2, c + [0.005, 0, 0]),
+              panoptic_fusion.LocalFruit(2, 9, 0, [4], 50, 2, c + [0.3, 0, 0])]
+    groups = sorted(sorted(g) for g in panoptic_fusion.associate(fruits, {}, {}, cfg))
+    assert groups == [[0, 2], [1], [3]]  # window 1's slot joins the nearer of window 0's two slots
+    parts = panoptic_fusion.split_frames({0: c, 1: c + 0.01, 5: c + [0.5, 0, 0], 6: None}, 0.08)
+    assert parts == [[0, 1, 6], [5]]
+
+
+def test_fusion_uses_mask_overlap_on_shared_frames():
+    cfg = panoptic_fusion.Config()
+    a = panoptic_fusion.LocalFruit(0, 3, 0, [4], 50, 2, np.zeros(3))
+    b = panoptic_fusion.LocalFruit(1, 8, 0, [4], 50, 2, np.full(3, 0.005))
+    m_a, m_b = np.zeros((6, 6), np.int32), np.zeros((6, 6), np.int32)
+    m_a[:3, :3], m_b[:3, :3] = 3, 8
+    part_of = {(0, 3, 4): 0, (1, 8, 4): 0}
+    assert np.isfinite(panoptic_fusion.pair_cost(a, b, {(0, 4): m_a, (1, 4): m_b}, part_of, cfg))
+    m_b[:] = 0
+    m_b[3:, 3:] = 8                      # close in 3D but disjoint masks on a frame both rendered
+    assert panoptic_fusion.pair_cost(a, b, {(0, 4): m_a, (1, 4): m_b}, part_of, cfg) == np.inf
+
+
+def test_failed_and_unrendered_windows_are_skipped_with_a_note(make_row):
+    row = make_row()
+    m = pd.read_parquet(row.processed / "window_metrics.parquet")
+    m.loc[m.window_id == 2, ["status", "error"]] = ["failed", "step 3: non-finite loss"]
+    m.to_parquet(row.processed / "window_metrics.parquet")
+    for p in (row.processed / "nerf" / "window_001" / "renders").glob("semantic_*.png"):
+        p.unlink()
+    res = row.runner().run(["panoptic_fusion"], force=True)[0]
+    assert res.summary["windows_failed_skipped"] == 1 and res.summary["windows_without_panoptic_renders"] == 1
+    assert any("window 2 failed" in n for n in res.summary["notes"])
+    pf = pd.read_parquet(row.processed / "panoptic_frames.parquet")
+    assert set(pf.window_id) == {0}
+
+
+def test_a_missing_render_is_an_error_naming_the_file(make_row):
+    row = make_row()
+    victim = sorted((row.processed / "nerf" / "window_000" / "renders").glob("instance_*.png"))[1]
+    victim.unlink()
+    with pytest.raises(ImageError, match=victim.name):
+        row.runner().run(["panoptic_fusion"], force=True)
+
+
+# -- fruit_count -----------------------------------------------------------------------------------------
+
+def test_fruit_positions_and_diameters_are_near_ground_truth(perfect_row):
+    g2f, _, px = gt_to_fused(perfect_row)
+    fruits = pd.read_parquet(perfect_row.processed / "fruits.parquet").set_index("fruit_id")
+    gt = perfect_row.gt_fruits.set_index("fruit_id")
+    pairs = [(g, next(iter(f - {0}))) for g, f in g2f.items() if len(f - {0}) == 1 and px[g] >= 400]
+    assert len(pairs) >= 4
+    near = [(g, f) for g, f in pairs if gt.loc[g, "near_row"]]
+    assert near and all(fruits.loc[f, "near_row"] for _, f in near)
+    assert all(not fruits.loc[f, "near_row"] for g, f in pairs if not gt.loc[g, "near_row"])
+    gi, fi = (list(v) for v in zip(*near))
+    err = np.linalg.norm(fruits.loc[fi, ["x_m", "y_m", "z_m"]].to_numpy() - gt.loc[gi, ["x_m", "y_m", "z_m"]].to_numpy(),
+                         axis=1)
+    assert np.median(err) < 0.015, err
+    dia = {k: np.abs(fruits.loc[fi, k].to_numpy() - gt.loc[gi, "diameter_m"].to_numpy())
+           for k in ("diameter_m", "diameter_sphere_m", "diameter_pca_m")}
+    assert np.median(dia["diameter_m"]) < 0.01, dia
+    # the spheroid fit beats the sphere fit and the principal extents on peppers
+    assert dia["diameter_m"].mean() < dia["diameter_sphere_m"].mean()
+    assert dia["diameter_m"].mean() < dia["diameter_pca_m"].mean()
+    assert (fruits.loc[fi, "class_id"].to_numpy() == gt.loc[gi, "class_id"].to_numpy()).all()
+    assert (fruits.class_confidence.between(0, 1)).all() and (fruits.n_frames >= 1).all()
+    assert (fruits.first_frame_id <= fruits.last_frame_id).all()
+
+
+def test_counts_equal_the_ground_truth_near_row_fruits_seen(perfect_row):
+    _, _, px = gt_to_fused(perfect_row)
+    gt = perfect_row.gt_fruits.set_index("fruit_id")
+    seen = [g for g, n in px.items() if n >= 4 and gt.loc[g, "near_row"]]
+    counts = pd.read_parquet(perfect_row.processed / "counts.parquet").set_index("class_id")
+    assert sorted(counts.index) == list(THING_IDS)
+    assert counts["count"].sum() == len(seen) > 0
+    for c in THING_IDS:
+        assert counts.loc[c, "count"] == int((gt.loc[seen, "class_id"] == c).sum())
+
+
+def test_surface_fits_recover_known_shapes():
+    rng = np.random.default_rng(0)
+    th, ph = rng.uniform(0.2, np.pi - 0.2, 800), rng.uniform(-np.pi / 2, np.pi / 2, 800)   # front half only
+    a, c, centre = 0.035, 0.045, np.array([1.0, 0.6, 0.8])
+    pts = centre + np.c_[a * np.sin(th) * np.sin(ph), -a * np.sin(th) * np.cos(ph), c * np.cos(th)]
+    pts += rng.normal(0, 0.0005, pts.shape)
+    got_c, dia, length = fruit_count.fit_spheroid(pts)
+    assert abs(dia - 2 * a) < 0.002 and abs(length - 2 * c) < 0.004 and np.linalg.norm(got_c - centre) < 0.002
+    sph = centre + a * np.c_[np.sin(th) * np.sin(ph), -np.sin(th) * np.cos(ph), np.cos(th)]
+    got_c, r = fruit_count.fit_sphere(sph)
+    assert abs(r - a) < 1e-4 and np.linalg.norm(got_c - centre) < 1e-4
+    assert fruit_count.principal_extents(sph)[1] < 2 * a  # extents of a half-seen surface are biased low
+
+
+# -- outputs readable elsewhere --------------------------------------------------------------------------
+
+@pytest.mark.parametrize("table", ["panoptic_frames", "fruit_slots", "fruits", "counts", "evaluation"])
+def test_tables_are_readable_by_duckdb_and_polars_and_carry_units(perfect_row, table):
+    duckdb = pytest.importorskip("duckdb")
+    pl = pytest.importorskip("polars")
+    path = perfect_row.processed / f"{table}.parquet"
+    n = duckdb.sql(f"select count(*) from '{path}'").fetchall()[0][0]
+    assert n == pl.read_parquet(path).height == len(pd.read_parquet(path)) > 0
+    schema = pq.read_schema(path)
+    if table == "fruits":
+        assert schema.field("x_m").metadata[b"unit"] == b"m"
+        assert schema.field("diameter_m").metadata[b"unit"] == b"m"
+
+
+def test_fruit_map_ply_opens_in_open3d(perfect_row):
+    o3d = pytest.importorskip("open3d")
+    pcd = o3d.io.read_point_cloud(str(perfect_row.processed / "fruit_map" / "fruits.ply"))
+    fruits = pd.read_parquet(perfect_row.processed / "fruits.parquet")
+    pts = np.asarray(pcd.points)
+    assert len(pts) == (fruits.n_points + fruits.n_outliers).sum() and pcd.has_colors()
+    near = fruits[fruits.near_row]
+    assert pts[:, 1].min() < near.y_m.max()
+
+
+# -- evaluate --------------------------------------------------------------------------------------------
+
+def test_evaluate_is_perfect_on_perfect_input(perfect_row):
+    ev = evaluation(perfect_row)
+    assert list(ev.columns) == ["scope", "metric", "value", "unit"]
+    windows = sorted(s for s in ev.scope.unique() if s.startswith("window_"))
+    assert windows == [f"window_{w:03d}" for w in sorted(perfect_row.windows.window_id.unique())]
+    for w in windows:
+        for k in ("pq", "sq", "rq", "miou", "id_consistency"):
+            assert metric(ev, w, k) == pytest.approx(1.0), (w, k)
+        assert metric(ev, w, "pq_detector") < 0.95 and 0 < metric(ev, w, "miou_detector") < 1
+        assert metric(ev, w, "ate_refined_m") == pytest.approx(0, abs=1e-6)
+        assert metric(ev, w, "ate_odometry_m") > 1e-4
+        assert metric(ev, w, "psnr") == pytest.approx(25 + int(w[-3:]))
+    for k in ("id_consistency", "fruit_recall", "fruit_precision", "class_accuracy"):
+        assert metric(ev, "row", k) == pytest.approx(1.0), k
+    # fusion voids slots under panoptic_fusion.min_slot_px pixels: a few 1-3 px fruit fragments are missed
+    assert 0.99 < metric(ev, "row", "pq") < 1 and metric(ev, "row", "miou") > 0.99
+    assert metric(ev, "row", "count_error_rel") == 0 and metric(ev, "row", "count_gt") > 0
+    assert metric(ev, "row", "diameter_mae_m") < 0.012 and metric(ev, "row", "diameter_median_abs_err_m") < 0.01
+    assert metric(ev, "row", "diameter_mae_m") < metric(ev, "row", "diameter_sphere_mae_m")
+    units = ev.set_index("metric").unit
+    assert units["psnr"].iloc[0] == "dB" and units["diameter_mae_m"] == "m" and units["pq"].iloc[0] == "fraction"
+
+
+def split_and_drop(wid: int, fid: int, sem: np.ndarray, slots: np.ndarray):
+    """Window 0: every fruit gets a new slot on every other frame. Window 1: its largest fruit is lost."""
+    if wid == 0 and fid % 4 == 2:
+        slots = np.where(slots > 0, slots + 500, 0)
+    if wid == 1:
+        ids, n = np.unique(slots[slots > 0], return_counts=True)
+        if len(ids):
+            lost = slots == ids[np.argmax(n)]
+            sem, slots = np.where(lost, 1, sem), np.where(lost, 0, slots)
+    return sem, slots
+
+
+def test_evaluate_is_worse_on_split_slots_and_missed_fruits(make_row, perfect_row):
+    row = make_row(hook=split_and_drop)
+    run_stages(row)
+    ev, good = evaluation(row), evaluation(perfect_row)
+    assert metric(ev, "window_000", "id_consistency") < metric(good, "window_000", "id_consistency")
+    assert metric(ev, "window_000", "pq") == pytest.approx(1.0)            # per-frame panoptics untouched
+    assert metric(ev, "window_001", "pq") < metric(good, "window_001", "pq")
+    assert metric(ev, "window_001", "miou") < 1.0
+    assert metric(ev, "row", "id_consistency") < metric(good, "row", "id_consistency")
+
+
+def test_evaluate_without_ground_truth_is_an_empty_table_with_a_note(perfect_row, tmp_path):
+    frames = perfect_row.frames.assign(gt_semantic_path=None, gt_instance_path=None)
+    (tmp_path / "raw").mkdir()
+    ctx = StageContext(stage="evaluate", seq=SEQ, data_root=perfect_row.root, show_progress=False)
+    out = evaluate.run({"raw": tmp_path / "raw", "frames": frames}, evaluate.Config(), ctx)
+    assert out["evaluation"].empty and "no ground truth" in ctx.summary["notes"][0]
+
+
+def test_pag_evaluate_runs_from_the_cli(perfect_row, capsys):
+    args = ["evaluate", "--seq", SEQ, "--data-root", str(perfect_row.root), "--no-progress"]
+    for kv in TINY:
+        args += ["--set", kv]
+    assert cli.main(args) == 0
+    assert "evaluate:" in capsys.readouterr().err
+
+
+def test_bad_config_is_rejected():
+    with pytest.raises(ValueError, match="max_match_distance_m"):
+        panoptic_fusion.Config(max_match_distance_m=0)
+    with pytest.raises(ValueError, match="max_depth_m"):
+        fruit_count.Config(max_depth_m=-1)
+
+
+# -- report ----------------------------------------------------------------------------------------------
+
+def test_report_is_one_self_contained_page_with_every_section(perfect_row):
+    page = (perfect_row.processed / "report" / "report.html").read_text()
+    for section in report.SECTIONS:
+        assert f"<h2>{section}</h2>" in page, section
+    n_windows = perfect_row.windows.window_id.nunique()
+    assert page.count('src="data:image/png;base64,') == 5 * n_windows + 1   # 5 panels per window + the map
+    assert "src=\"http" not in page and "src=\"/" not in page
+    assert "nerf_fit:" in page and "fruit_green" in page and "pq_detector" in page
