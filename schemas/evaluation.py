@@ -13,6 +13,7 @@ SCHEMA = table_schema(
     col("scope", pa.string(), "'window_NNN', 'windows_mean' or 'row'"),
     col("metric", pa.string(), "metric name (psnr, pq, sq, rq, miou, pq_detector, miou_detector, id_consistency, "
         "ate_odometry_m, ate_refined_m, count_gt, count_pred, count_error_rel, diameter_mae_m, ...)"),
-    col("value", pa.float64(), "metric value (NaN where undefined, e.g. no fruit seen in enough frames)"),
+    col("value", pa.float64(), "metric value (null where undefined, e.g. no fruit seen in enough frames)",
+        nullable=True),
     col("unit", pa.string(), "unit of value: 'dB', 'm', 'fraction', 'fruits', 'frames', ... ('' if unitless)"),
 )

@@ -219,7 +219,11 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
         pcd.points = o3d.utility.Vector3dVector(np.concatenate(cloud_pts))
         pcd.colors = o3d.utility.Vector3dVector(id_colours(np.concatenate(cloud_ids)).astype(np.float64) / 255)
     ply = Path(ctx.output_dir("fruit_map")) / "fruits.ply"
-    if not o3d.io.write_point_cloud(str(ply), pcd, write_ascii=False):
+    if not cloud_pts:  # Open3D refuses to write an empty cloud; an empty PLY is still a valid file
+        ply.write_text("ply\nformat ascii 1.0\nelement vertex 0\nproperty double x\nproperty double y\n"
+                       "property double z\nproperty uchar red\nproperty uchar green\nproperty uchar blue\n"
+                       "end_header\n")
+    elif not o3d.io.write_point_cloud(str(ply), pcd, write_ascii=False):
         raise OSError(f"fruit_count: open3d could not write {ply}")
     n_far = int((~fruits.near_row.astype(bool)).sum())
     if n_far:

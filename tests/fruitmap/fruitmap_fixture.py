@@ -13,7 +13,9 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
+import pyarrow as pa
 
+import schemas
 from pipeline import io
 from pipeline.images import read_label, write_png
 from pipeline.runner import Runner
@@ -84,8 +86,18 @@ def fabricate_nerf(row: Row, seed: int = 0, hook: SlotHook | None = None) -> Non
                             "params": 1000, "steps": 10, "fit_s": 1.5 + wid, "render_s_per_image": 0.1,
                             "samples_per_ray": 8.0, "val_psnr": 25.0 + wid, "train_psnr": 26.0,
                             "checkpoint_path": f"processed/{SEQ}/nerf/window_{wid:03d}/checkpoint.pt"})
-    io.write_table(pd.DataFrame(pose_rows), row.processed / "window_poses.parquet", "window_poses")
-    io.write_table(pd.DataFrame(metric_rows), row.processed / "window_metrics.parquet", "window_metrics")
+    io.write_table(complete(pd.DataFrame(pose_rows), "window_poses"), row.processed / "window_poses.parquet",
+                   "window_poses")
+    io.write_table(complete(pd.DataFrame(metric_rows), "window_metrics"), row.processed / "window_metrics.parquet",
+                   "window_metrics")
+
+
+def complete(df: pd.DataFrame, table: str) -> pd.DataFrame:
+    """Columns the schema has beyond those this fixture knows (nerf_fit's tables grow): 0 or ''."""
+    for f in schemas.get(table):
+        if f.name not in df.columns:
+            df[f.name] = "" if pa.types.is_string(f.type) else (False if pa.types.is_boolean(f.type) else 0)
+    return df
 
 
 def copy_row(upstream: Path, dest: Path, seed: int = 0, hook: SlotHook | None = None) -> Row:

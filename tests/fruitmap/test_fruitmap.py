@@ -282,3 +282,17 @@ def test_report_is_one_self_contained_page_with_every_section(perfect_row):
     assert page.count('src="data:image/png;base64,') == 5 * n_windows + 1   # 5 panels per window + the map
     assert "src=\"http" not in page and "src=\"/" not in page
     assert "nerf_fit:" in page and "fruit_green" in page and "pq_detector" in page
+
+
+def test_without_any_panoptic_render_every_stage_still_writes_its_outputs(make_row):
+    row = make_row()
+    for p in (row.processed / "nerf").glob("window_*/renders/semantic_*.png"):
+        p.unlink()
+    run_stages(row)
+    assert pd.read_parquet(row.processed / "panoptic_frames.parquet").empty
+    assert pd.read_parquet(row.processed / "fruits.parquet").empty
+    assert pd.read_parquet(row.processed / "counts.parquet")["count"].sum() == 0
+    assert (row.processed / "fruit_map" / "fruits.ply").is_file()
+    ev = evaluation(row)
+    assert metric(ev, "window_000", "pq_detector") > 0 and metric(ev, "row", "count_pred") == 0
+    assert "No fruit was fused" in (row.processed / "report" / "report.html").read_text()
