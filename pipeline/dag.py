@@ -16,6 +16,7 @@ STAGE_ORDER: tuple[str, ...] = (
     "ingest",
     "depth_filter",
     "windows",
+    "colmap_poses",
     "nerf_fit",
     "panoptic_fusion",
     "fruit_count",

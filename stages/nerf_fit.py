@@ -18,6 +18,7 @@ from pipeline.stage import StageContext
 
 INPUTS = ("frames", "windows")
 OUTPUTS = ("window_poses", "window_metrics", "nerf")
+OPTIONAL_INPUTS = ("colmap_poses",)  # initial poses when pose_source = colmap
 
 
 @dataclass(frozen=True)
@@ -45,7 +46,10 @@ class Config:
     model: ModelOverrides = field(default_factory=ModelOverrides)
     """per-setting overrides of the preset."""
     refine_poses: bool = True
-    """optimise the camera poses online (off = keep the odometry poses fixed)."""
+    """optimise the camera poses online (off = keep the initial poses fixed)."""
+    pose_source: Literal["odometry", "colmap"] = "odometry"
+    """initial poses: 'odometry' (frames.parquet) or 'colmap' (colmap_poses.parquet, needs
+    colmap_poses.enabled=true; frames COLMAP could not register keep their odometry pose)."""
     workers: int = 0
     """Dask workers for a local cluster (0 = one per core, at most one per window)."""
     threads_per_worker: int = 0
@@ -71,6 +75,29 @@ def load_window(frames: pd.DataFrame, data_root: Path):
     k = frames[["fx", "fy", "cx", "cy"]].to_numpy(np.float64)
     poses = pose_matrix(frames[["tx", "ty", "tz", "qx", "qy", "qz", "qw"]].to_numpy(np.float64))
     return WindowData(imgs, deps, k, poses, (frames["split"] == "train").to_numpy(), frames["frame_id"].to_numpy())
+
+
+def initial_poses(w: pd.DataFrame, wid: int, colmap: pd.DataFrame | None, source: str) -> pd.DataFrame:
+    """The window's rows (windows merged with frames) with the initial pose columns taken from `source`
+    and a `pose_source` column per frame ('odometry' or 'colmap', as colmap_poses.parquet says)."""
+    w = w.copy()
+    w["pose_source"] = "odometry"
+    if source == "odometry":
+        return w
+    if colmap is None or colmap.empty:
+        raise ValueError("nerf_fit.pose_source=colmap, but colmap_poses.parquet is "
+                         f"{'missing' if colmap is None else 'empty'}; run `pag colmap_poses --set "
+                         "colmap_poses.enabled=true` first (or `pag all` with that setting)")
+    cols = ["tx", "ty", "tz", "qx", "qy", "qz", "qw"]
+    c = colmap[colmap.window_id == wid].set_index("frame_id")
+    missing = sorted(set(w["frame_id"]) - set(c.index))
+    if missing:
+        raise ValueError(f"nerf_fit.pose_source=colmap: colmap_poses.parquet has no pose for window {wid}, frames "
+                         f"{missing[:10]}; it is older than windows.parquet: rerun `pag colmap_poses`")
+    c = c.loc[w["frame_id"]]
+    w[cols] = c[cols].to_numpy()
+    w["pose_source"] = c["source"].to_numpy()
+    return w
 
 
 def fit_one(payload: dict) -> dict:
@@ -106,7 +133,8 @@ def fit_one(payload: dict) -> dict:
     drot = rotation_angle_deg(init[:, :3, :3], final[:, :3, :3])
     q = pose_txyzq(final)
     poses = pd.DataFrame({"window_id": wid, "frame_id": data.frame_ids.astype(np.int32),
-                          "split": np.where(data.is_train, "train", "val"), "source": "odometry",
+                          "split": np.where(data.is_train, "train", "val"),
+                          "source": frames["pose_source"].to_numpy() if "pose_source" in frames else "odometry",
                           "refined": bool(payload["cfg"].refine_poses),
                           **{c: q[:, j] for j, c in enumerate(["tx", "ty", "tz", "qx", "qy", "qz", "qw"])},
                           "delta_t_m": dt, "delta_rot_deg": drot})
@@ -130,10 +158,12 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
     mcfg = model_config(cfg)
     out_dir = ctx.output_dir("nerf")
     payloads = {}
+    colmap = inputs.get("colmap_poses")
     for wid in wids:
         w = windows[windows.window_id == wid].merge(frames, on="frame_id", how="left")
         if w["rgb_path"].isna().any():
             raise ValueError(f"window {wid}: frames {w.loc[w.rgb_path.isna(), 'frame_id'].tolist()} not in frames.parquet")
+        w = initial_poses(w, int(wid), colmap, cfg.pose_source)
         payloads[str(wid)] = {"window_id": int(wid), "frames": w.to_dict("list"), "cfg": replace(mcfg, seed=cfg.seed + int(wid)),
                               "device": ctx.device, "out_dir": str(out_dir.resolve()),
                               "data_root": str(ctx.data_root.resolve())}

@@ -1,0 +1,330 @@
+"""Optional: COLMAP poses of each window's frames, mapped into the odometry frame by a similarity transform."""
+from __future__ import annotations
+
+import os
+import shutil
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from nerf.geometry import pose_matrix, pose_txyzq, rotation_angle_deg
+from pipeline.stage import StageContext
+from schemas import empty
+
+INPUTS = ("frames", "windows", "images")
+OUTPUTS = ("colmap_poses",)
+POSE_COLS = ["tx", "ty", "tz", "qx", "qy", "qz", "qw"]
+
+
+@dataclass(frozen=True)
+class Config:
+    enabled: bool = False
+    """run COLMAP (off: `pag all` leaves the stage out; run alone it writes an empty table)."""
+    min_registered: int = 3
+    """frames COLMAP must register in a window before its poses are used (else the window keeps odometry)."""
+    overlap: int = 10
+    """sequential matching: each frame is matched with this many following frames."""
+    max_features: int = 8192
+    """SIFT features per image at most."""
+    sift_peak_threshold: float = 0.004
+    """SIFT detection threshold (COLMAP's default 0.0067 finds too few features on small images)."""
+    min_inliers: int = 30
+    """verified matches needed for the initial image pair and for registering a further image."""
+    min_tri_angle_deg: float = 4.0
+    """triangulation angle of the initial pair (COLMAP's 16 deg is more than a short window along a row offers)."""
+    orientation_weight: float = 1.0
+    """weight of the camera orientations in the alignment (0 = plain Umeyama on the camera centres, whose
+    rotation about a straight trajectory is undetermined)."""
+    max_residual_m: float = 0.05
+    """a registered frame whose aligned position is farther than this from its odometry position falls back to
+    odometry and takes no part in the alignment (pairs of frames are tried as hypotheses, see robust_similarity)."""
+    max_rot_residual_deg: float = 5.0
+    """likewise for the angle between its aligned and its odometry orientation (a short, narrow-baseline
+    reconstruction can be consistently tilted; odometry orientations are good to a few degrees per window)."""
+    threads: int = 0
+    """COLMAP threads (0 = all cores)."""
+    seed: int = 0
+    """COLMAP's random seed."""
+
+    def __post_init__(self) -> None:
+        if self.min_registered < 2:
+            raise ValueError(f"colmap_poses.min_registered must be >= 2, got {self.min_registered}")
+        for name in ("overlap", "max_features", "min_inliers"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"colmap_poses.{name} must be >= 1, got {getattr(self, name)}")
+        for name in ("sift_peak_threshold", "min_tri_angle_deg", "max_residual_m", "max_rot_residual_deg"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"colmap_poses.{name} must be > 0, got {getattr(self, name)}")
+        if self.orientation_weight < 0 or self.threads < 0:
+            raise ValueError("colmap_poses.orientation_weight and colmap_poses.threads must be >= 0")
+
+
+# -- maths ----------------------------------------------------------------------------------------
+def align_similarity(src: np.ndarray, dst: np.ndarray, src_rot: np.ndarray | None = None,
+                     dst_rot: np.ndarray | None = None, orientation_weight: float = 1.0) -> tuple[float, np.ndarray, np.ndarray]:
+    """Similarity (s, R, t) with dst_i ~ s R src_i + t and dst_rot_i ~ R src_rot_i.
+
+    Umeyama (1991) maximises tr(R^T H), H = mean_i (dst_i - mu_d)(src_i - mu_s)^T. Camera centres along a
+    straight row are nearly collinear, which leaves the rotation about that line undetermined, so the
+    orientations add w * mean_i dst_rot_i src_rot_i^T (minimising sum |dst_rot_i - R src_rot_i|_F^2) to
+    H / (sigma_s sigma_d) (sigma = RMS distance to the centroid, making both terms unitless):
+        M = U D V^T,  R = U diag(1, 1, det(U V^T)) V^T,  s = sum (dst_i - mu_d) . R (src_i - mu_s) / sum |src_i - mu_s|^2
+    With w = 0 this is Umeyama's solution. src, dst [N, 3]; rotations [N, 3, 3]. Example: src = dst gives
+    s = 1, R = I, t = 0."""
+    src, dst = np.asarray(src, np.float64), np.asarray(dst, np.float64)
+    if src.shape != dst.shape or src.ndim != 2 or src.shape[1] != 3 or len(src) < 2:
+        raise ValueError(f"align_similarity needs two [N >= 2, 3] point sets, got {src.shape} and {dst.shape}")
+    mu_s, mu_d = src.mean(0), dst.mean(0)
+    xs, xd = src - mu_s, dst - mu_d
+    sig_s, sig_d = np.sqrt((xs ** 2).sum(1).mean()), np.sqrt((xd ** 2).sum(1).mean())
+    if not (sig_s > 0 and sig_d > 0):
+        raise ValueError("align_similarity: the camera centres coincide, so the scale is undetermined")
+    m = xd.T @ xs / len(src) / (sig_s * sig_d)
+    if src_rot is not None and dst_rot is not None and orientation_weight > 0:
+        m = m + orientation_weight * np.einsum("nij,nkj->ik", dst_rot, src_rot) / len(src_rot)
+    u, _, vt = np.linalg.svd(m)
+    r = u @ np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt)) or 1.0]) @ vt
+    s = float((xd * (xs @ r.T)).sum() / (xs ** 2).sum())
+    if not s > 0:
+        raise ValueError(f"align_similarity: non-positive scale {s} (the trajectories do not correspond)")
+    return s, r, mu_d - s * r @ mu_s
+
+
+def apply_similarity(s: float, r: np.ndarray, t: np.ndarray, c2w: np.ndarray) -> np.ndarray:
+    """Camera-to-world poses [N, 4, 4] of the source frame -> the target frame (rotation R, centre s R c + t)."""
+    out = np.array(c2w, np.float64, copy=True)
+    out[:, :3, :3] = r @ c2w[:, :3, :3]
+    out[:, :3, 3] = s * c2w[:, :3, 3] @ r.T + t
+    return out
+
+
+# -- COLMAP ---------------------------------------------------------------------------------------
+def _pycolmap():
+    try:
+        import pycolmap
+    except ImportError as err:  # the dependency is declared; this is for broken installs
+        raise RuntimeError(f"colmap_poses.enabled=true needs pycolmap, which cannot be imported ({err}); "
+                           "reinstall it with `.venv/bin/pip install pycolmap`") from err
+    return pycolmap
+
+
+def reconstruct(image_paths: dict[int, Path], k: tuple[float, float, float, float], cfg: Config,
+                workdir: Path) -> dict[int, np.ndarray]:
+    """COLMAP on one window: frame id -> image file, PINHOLE intrinsics (fx, fy, cx, cy) in pixels ->
+    frame id -> camera-to-world [4, 4] in the reconstruction's own frame and units, for the frames of the
+    largest model (empty if COLMAP finds none)."""
+    pycolmap = _pycolmap()
+    img_dir = workdir / "images"
+    img_dir.mkdir(parents=True)
+    names = {}
+    for fid, path in sorted(image_paths.items()):
+        name = f"{fid:06d}{path.suffix}"  # zero-padded: sequential matching follows the name order
+        try:
+            os.symlink(path.resolve(), img_dir / name)
+        except OSError:
+            shutil.copyfile(path, img_dir / name)
+        names[name] = fid
+    db = workdir / "database.db"
+    threads = cfg.threads or -1
+    reader = pycolmap.ImageReaderOptions()
+    reader.camera_model = "PINHOLE"
+    reader.camera_params = ",".join(f"{v:.10g}" for v in k)
+    extraction = pycolmap.FeatureExtractionOptions()
+    extraction.num_threads = threads
+    extraction.sift.max_num_features = cfg.max_features
+    extraction.sift.peak_threshold = cfg.sift_peak_threshold
+    pycolmap.extract_features(db, img_dir, image_names=sorted(names), camera_mode=pycolmap.CameraMode.SINGLE,
+                              reader_options=reader, extraction_options=extraction)
+    matching = pycolmap.FeatureMatchingOptions()
+    matching.num_threads = threads
+    pairing = pycolmap.SequentialPairingOptions()
+    pairing.overlap = cfg.overlap
+    verify = pycolmap.TwoViewGeometryOptions()
+    verify.ransac.random_seed = cfg.seed
+    pycolmap.match_sequential(db, matching_options=matching, pairing_options=pairing, verification_options=verify)
+    opts = pycolmap.IncrementalPipelineOptions()
+    opts.num_threads = threads
+    opts.random_seed = cfg.seed
+    opts.min_model_size = cfg.min_registered
+    opts.min_num_matches = min(15, cfg.min_inliers)
+    # the intrinsics are known: keep the PINHOLE camera fixed
+    opts.ba_refine_focal_length = False
+    opts.ba_refine_principal_point = False
+    opts.ba_refine_extra_params = False
+    opts.mapper.abs_pose_refine_focal_length = False
+    opts.mapper.abs_pose_refine_extra_params = False
+    opts.mapper.init_min_tri_angle = cfg.min_tri_angle_deg
+    opts.mapper.init_min_num_inliers = cfg.min_inliers
+    opts.mapper.abs_pose_min_num_inliers = min(cfg.min_inliers, opts.mapper.abs_pose_min_num_inliers)
+    models = pycolmap.incremental_mapping(db, img_dir, workdir / "sparse", options=opts)
+    if not models:
+        return {}
+    rec = max(models.values(), key=lambda m: m.num_reg_images())
+    out = {}
+    for im in rec.images.values():
+        if not im.has_pose:
+            continue
+        cfw = im.cam_from_world() if callable(im.cam_from_world) else im.cam_from_world
+        w2c = np.eye(4)
+        w2c[:3, :] = np.asarray(cfw.matrix(), np.float64)
+        out[names[im.name]] = np.linalg.inv(w2c)
+    return out
+
+
+class _Quiet:
+    """Keeps COLMAP's INFO log off the terminal while the stage runs (restored afterwards)."""
+
+    def __enter__(self):
+        self.log = getattr(_pycolmap(), "logging", None)
+        self.level = getattr(self.log, "minloglevel", None)
+        if self.level is not None:
+            self.log.minloglevel = 2
+        return self
+
+    def __exit__(self, *exc):
+        if self.level is not None:
+            self.log.minloglevel = self.level
+
+
+# -- one window -----------------------------------------------------------------------------------
+MAX_HYPOTHESES = 2000
+"""pairs of frames tried as alignment hypotheses per window (all pairs up to 63 registered frames)."""
+
+
+def _fit(col: np.ndarray, odo: np.ndarray, sel: np.ndarray, cfg: Config):
+    """Similarity fitted on the frames `sel` -> (s, aligned poses [M, 4, 4], position residuals [M] m,
+    orientation residuals [M] deg, inliers [M] bool)."""
+    s, r, t = align_similarity(col[sel, :3, 3], odo[sel, :3, 3], col[sel, :3, :3], odo[sel, :3, :3],
+                               cfg.orientation_weight)
+    aligned = apply_similarity(s, r, t, col)
+    res_t = np.linalg.norm(aligned[:, :3, 3] - odo[:, :3, 3], axis=1)
+    res_r = rotation_angle_deg(aligned[:, :3, :3], odo[:, :3, :3])
+    return s, aligned, res_t, res_r, (res_t <= cfg.max_residual_m) & (res_r <= cfg.max_rot_residual_deg)
+
+
+def robust_similarity(col: np.ndarray, odo: np.ndarray, cfg: Config):
+    """Outlier-robust alignment of COLMAP poses col [M, 4, 4] to odometry poses odo [M, 4, 4]: every pair
+    of frames (two centres and their orientations fix a similarity) is a hypothesis, the one with the most
+    inliers (smaller RMS residual on ties) wins and is refitted on its inliers until they stop changing.
+    A plain least-squares fit is not enough: one misregistered frame a few decimetres off can shrink the
+    scale of a short window until every residual looks small. Returns `_fit`'s tuple, or None."""
+    m = len(col)
+    pairs = [(i, j) for i in range(m) for j in range(i + 1, m)]
+    if len(pairs) > MAX_HYPOTHESES:
+        pick = np.random.default_rng(cfg.seed).choice(len(pairs), MAX_HYPOTHESES, replace=False)
+        pairs = [pairs[k] for k in np.sort(pick)]
+    best, best_key = None, None
+    for i, j in pairs:
+        sel = np.zeros(m, bool)
+        sel[[i, j]] = True
+        try:
+            fit = _fit(col, odo, sel, cfg)
+        except ValueError:  # coincident centres: no scale from this pair
+            continue
+        key = (int(fit[4].sum()), -float(np.sqrt(np.mean(fit[2][fit[4]] ** 2))) if fit[4].any() else -np.inf)
+        if best_key is None or key > best_key:
+            best, best_key = fit, key
+    for _ in range(5):
+        if best is None or best[4].sum() < 2:
+            return None
+        try:
+            fit = _fit(col, odo, best[4], cfg)
+        except ValueError:
+            return best
+        done = (fit[4] == best[4]).all()
+        if fit[4].sum() < best[4].sum():
+            return best
+        best = fit
+        if done:
+            break
+    return best
+
+
+def align_window(wid: int, frame_ids: np.ndarray, odo_c2w: np.ndarray, colmap_c2w: dict[int, np.ndarray],
+                 cfg: Config) -> tuple[pd.DataFrame, dict[str, int]]:
+    """Rows of the colmap_poses table for one window and its counts. Odometry poses [N, 4, 4] of
+    `frame_ids`; COLMAP poses by frame id (any subset). Registered frames whose position or orientation
+    residual after the robust alignment exceeds cfg.max_residual_m / max_rot_residual_deg fall back to
+    odometry; windows with fewer than cfg.min_registered frames left keep their odometry poses."""
+    n = len(frame_ids)
+    pose = odo_c2w.copy()
+    source = np.array(["odometry"] * n, dtype=object)
+    res_t = np.full(n, np.nan)
+    res_r = np.full(n, np.nan)
+    rmse, scale = np.nan, np.nan
+    have = np.array([int(f) in colmap_c2w for f in frame_ids])
+    counts = {"frames": n, "frames_not_registered": int((~have).sum()), "frames_rejected_residual": 0,
+              "windows_without_colmap": 0}
+    use = np.zeros(n, bool)
+    idx = np.flatnonzero(have)
+    fit = None
+    if len(idx) >= cfg.min_registered:
+        fit = robust_similarity(np.stack([colmap_c2w[int(f)] for f in frame_ids[idx]]), odo_c2w[idx], cfg)
+    if fit is not None and fit[4].sum() >= cfg.min_registered:
+        scale, aligned, res_t[idx], res_r[idx], inl = fit
+        use[idx[inl]] = True
+        pose[use] = aligned[inl]
+        source[use] = "colmap"
+        rmse = float(np.sqrt(np.mean(res_t[use] ** 2)))
+        counts["frames_rejected_residual"] = int((~inl).sum())
+    else:
+        counts["windows_without_colmap"] = 1
+    q = pose_txyzq(pose)
+    df = pd.DataFrame({"window_id": np.full(n, wid, np.int32), "frame_id": frame_ids.astype(np.int32),
+                       "registered": use, "source": source.astype(str),
+                       **{c: q[:, j] for j, c in enumerate(POSE_COLS)},
+                       "residual_m": res_t, "rot_residual_deg": res_r,
+                       "window_rmse_m": np.full(n, rmse), "scale": np.full(n, scale)})
+    return df, counts
+
+
+def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]:
+    if not cfg.enabled:
+        ctx.note("disabled (colmap_poses.enabled=false): empty table written; nerf_fit starts from odometry")
+        ctx.summary.update(windows=0, frames=0)
+        return {"colmap_poses": empty("colmap_poses")}
+    frames: pd.DataFrame = inputs["frames"]
+    windows: pd.DataFrame = inputs["windows"]
+    if windows.empty:
+        raise ValueError("colmap_poses: the windows table is empty; nothing to reconstruct")
+    tables, totals = [], {}
+    with _Quiet(), tempfile.TemporaryDirectory(prefix="pag_colmap_") as tmp:
+        wids = sorted(int(w) for w in windows["window_id"].unique())
+        for wid in ctx.progress(wids, "window", total=len(wids)):
+            w = windows[windows.window_id == wid].merge(frames, on="frame_id", how="left").sort_values("frame_id")
+            if w["rgb_path"].isna().any():
+                raise ValueError(f"colmap_poses: window {wid}: frames {w.loc[w.rgb_path.isna(), 'frame_id'].tolist()} "
+                                 f"are not in frames.parquet")
+            k = w[["fx", "fy", "cx", "cy"]].drop_duplicates()
+            if len(k) != 1:
+                raise ValueError(f"colmap_poses: window {wid} mixes {len(k)} different intrinsics "
+                                 f"{k.to_dict('records')}; one fixed PINHOLE camera per window is expected")
+            paths = {int(f): ctx.abspath(p) for f, p in zip(w["frame_id"], w["rgb_path"])}
+            missing = [f"{f}: {p}" for f, p in paths.items() if not p.is_file()]
+            if missing:
+                raise FileNotFoundError(f"colmap_poses: window {wid}: colour images missing: {missing[:5]}"
+                                        f"{' ...' if len(missing) > 5 else ''}; rerun `pag ingest --seq {ctx.seq}`")
+            col = reconstruct(paths, tuple(float(v) for v in k.iloc[0]), cfg, Path(tmp) / f"window_{wid:03d}")
+            odo = pose_matrix(w[POSE_COLS].to_numpy(np.float64))
+            df, counts = align_window(wid, w["frame_id"].to_numpy(), odo, col, cfg)
+            tables.append(df)
+            for key, v in counts.items():
+                totals[key] = totals.get(key, 0) + v
+            if counts["windows_without_colmap"]:
+                ctx.note(f"window {wid}: COLMAP registered {len(col)} of {len(w)} frames, fewer than min_registered="
+                         f"{cfg.min_registered} of them fit the odometry; the window keeps its odometry poses")
+    out = pd.concat(tables, ignore_index=True)
+    n_col = int(out["registered"].sum())
+    ctx.summary.update(windows=len(tables), frames=len(out), frames_colmap=n_col,
+                       frames_odometry_fallback=len(out) - n_col, **{k: v for k, v in totals.items() if k != "frames"},
+                       median_window_rmse_m=round(float(np.nanmedian(out.drop_duplicates("window_id")["window_rmse_m"])), 4)
+                       if out["window_rmse_m"].notna().any() else None)
+    if n_col < len(out):
+        ctx.note(f"{len(out) - n_col} of {len(out)} (window, frame) poses fall back to odometry "
+                 f"({totals['frames_not_registered']} not registered by COLMAP, "
+                 f"{totals['frames_rejected_residual']} with an alignment residual > {cfg.max_residual_m} m or "
+                 f"{cfg.max_rot_residual_deg} deg, {totals['windows_without_colmap']} window(s) without a usable model)")
+    return {"colmap_poses": out}
