@@ -296,3 +296,8 @@ def test_without_any_panoptic_render_every_stage_still_writes_its_outputs(make_r
     ev = evaluation(row)
     assert metric(ev, "window_000", "pq_detector") > 0 and metric(ev, "row", "count_pred") == 0
     assert "No fruit was fused" in (row.processed / "report" / "report.html").read_text()
+
+
+def test_a_second_run_skips_the_four_stages(perfect_row):
+    res = perfect_row.runner().run(["panoptic_fusion", "fruit_count", "evaluate", "report"])
+    assert [r.status for r in res] == ["skipped"] * 4
