@@ -39,18 +39,28 @@ class StageResult:
 
 
 def code_hash(stage: dag.Stage) -> str:
-    """Hash of the stage's source file and of the project packages it imports (sources, nerf, ...)."""
+    """Hash of the stage's source file, of the other stage modules it imports (transitively) and of the
+    project packages any of them imports (sources, nerf, ...)."""
     import ast
 
-    src_file = Path(stage.module.__file__)
-    h = hashlib.blake2b(src_file.read_bytes(), digest_size=16)
-    tree = ast.parse(src_file.read_text())
-    packages = set()
-    for node in ast.walk(tree):
-        if isinstance(node, ast.ImportFrom) and node.module:
-            packages.add(node.module.split(".")[0])
-        elif isinstance(node, ast.Import):
-            packages.update(a.name.split(".")[0] for a in node.names)
+    h = hashlib.blake2b(digest_size=16)
+    packages: set[str] = set()
+    todo, seen = [Path(stage.module.__file__)], set()
+    while todo:
+        src_file = todo.pop()
+        if src_file in seen or not src_file.is_file():
+            continue
+        seen.add(src_file)
+        h.update(src_file.name.encode())
+        h.update(src_file.read_bytes())
+        for node in ast.walk(ast.parse(src_file.read_text())):
+            names = ([node.module] if isinstance(node, ast.ImportFrom) and node.module else
+                     [a.name for a in node.names] if isinstance(node, ast.Import) else [])
+            for name in names:
+                parts = name.split(".")
+                if parts[0] == "stages" and len(parts) > 1:
+                    todo.append(REPO_ROOT / "stages" / f"{parts[1]}.py")
+                packages.add(parts[0])
     for pkg in sorted(packages - {"pipeline", "stages"}):
         pkg_dir = REPO_ROOT / pkg
         if pkg_dir.is_dir() and (pkg_dir / "__init__.py").exists():
