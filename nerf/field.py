@@ -1,7 +1,8 @@
 """The radiance field: colour grid G_c -> density decoder -> colour decoder (view-dependent).
 
     h = D(G_c(x))            16 outputs, 1 hidden layer of `hidden` (ReLU)
-    sigma = exp(min(h_0, 15))  (finite; an exponential with a clamped input)
+    sigma = exp(min(h_0, 15))  (finite; an exponential with a clamped input, in float32: under float16
+                                autocast exp(15) = 3.3e6 would overflow to inf)
     rgb = sigmoid(C([h, SH(d)]))  spherical harmonics of degree 2 for the view direction d
 """
 from __future__ import annotations
@@ -50,13 +51,13 @@ class RadianceField(nn.Module):
 
     def density(self, x: Tensor) -> Tensor:
         h = self.density_net(self.grid(x))
-        return torch.exp(h[:, 0].clamp(max=MAX_LOG_DENSITY))
+        return torch.exp(h[:, 0].float().clamp(max=MAX_LOG_DENSITY))
 
     def forward(self, x: Tensor, d: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """x [N, 3] normalised positions, d [N, 3] unit directions -> sigma [N], rgb [N, 3], g_c [N, L*F]."""
         g = self.grid(x)
         h = self.density_net(g)
-        sigma = torch.exp(h[:, 0].clamp(max=MAX_LOG_DENSITY))
+        sigma = torch.exp(h[:, 0].float().clamp(max=MAX_LOG_DENSITY))
         rgb = torch.sigmoid(self.color_net(torch.cat([h, sh_deg2(d)], -1)))
         return sigma, rgb, g
 

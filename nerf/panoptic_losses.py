@@ -2,6 +2,7 @@
 
     L_sem  = sum_r c_r * CE(p_sem(r), y_r) / sum_r c_r        c_r = detector confidence of the ray's segment
     L_inst = mean over thing rays of -log p_inst(r)[slot(segment(r))]  (slots from the per-frame assignment)
+Rays whose confidence or weight is not finite (NaN, inf) are left out of the weighted losses.
     L_stuff = mean over stuff rays of -log p_inst(r)[0]
     L_cons = mean over thing rays of || p_inst(r) - mean_{r' in segment(r)} p_inst(r') ||^2   (weak)
 
@@ -30,8 +31,11 @@ def semantic_loss(p_sem: Tensor, labels: Tensor, confidence: Tensor, void: int =
 
 
 def instance_loss(p_inst: Tensor, target_slot: Tensor, weight: Tensor | None = None) -> Tensor:
-    """p_inst [R, N], target_slot [R] (slot per ray, -1 = ignore) -> scalar mean NLL."""
+    """p_inst [R, N], target_slot [R] (slot per ray, -1 = ignore), optional weight [R] >= 0 -> scalar
+    (weighted) mean NLL. Rays with a non-finite weight are skipped, as in semantic_loss."""
     keep = target_slot >= 0
+    if weight is not None:
+        keep = keep & torch.isfinite(weight)
     if not keep.any():
         return p_inst.sum() * 0.0
     nll = -safe_log(p_inst[keep].gather(1, target_slot[keep].long()[:, None])[:, 0])

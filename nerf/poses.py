@@ -2,8 +2,10 @@
 
     R = [b1 b2 b3],  b1 = a1 / max(|a1|, eps),  b2 = normalise(a2 - (b1 . a2) b1),  b3 = b1 x b2
     c2w = c2w_init @ [R | t * scale_m]     (the correction acts in the camera frame)
-Parameters start at a1 = e_x, a2 = e_y, t = 0 (identity). Degenerate 6D inputs (a1 = 0, a2 parallel
-to a1) give a finite (possibly singular) matrix, never NaN.
+Parameters start at a1 = e_x, a2 = e_y, t = 0 (identity). Every input gives a finite rotation (orthonormal,
+det +1): each column is scaled by its largest entry before the norm (no overflow at 1e30, no underflow at
+1e-30), a1 ~ 0 (or non-finite) falls back to e_x, and a2 ~ parallel to a1 falls back to the axis least
+aligned with b1, made orthogonal to it. Gradients there are those of the fallback (zero), never NaN.
 """
 from __future__ import annotations
 
@@ -13,12 +15,36 @@ from torch import Tensor, nn
 EPS = 1e-8
 
 
+def _unit(v: Tensor, fallback: Tensor) -> Tensor:
+    """Rows of v [N, 3] scaled to unit length, `fallback` [N, 3] (unit) where v is ~0 or not finite."""
+    v = torch.nan_to_num(v, nan=0.0, posinf=0.0, neginf=0.0)
+    big = v.abs().amax(-1, keepdim=True)
+    ok = big > torch.finfo(v.dtype).tiny
+    v = v / torch.where(ok, big, torch.ones_like(big))        # largest entry +-1: the norm is safe
+    n = v.norm(dim=-1, keepdim=True)
+    ok = ok & (n > EPS)
+    return torch.where(ok, v / torch.where(ok, n, torch.ones_like(n)), fallback)
+
+
 def rotation_6d(a: Tensor) -> Tensor:
-    """[N, 6] -> [N, 3, 3] rotation matrices by Gram-Schmidt with an epsilon."""
+    """[N, 6] -> [N, 3, 3] rotation matrices by Gram-Schmidt, finite and orthonormal for any input."""
     a1, a2 = a[:, :3], a[:, 3:]
-    b1 = a1 / a1.norm(dim=-1, keepdim=True).clamp_min(EPS)
-    b2 = a2 - (b1 * a2).sum(-1, keepdim=True) * b1
-    b2 = b2 / b2.norm(dim=-1, keepdim=True).clamp_min(EPS)
+    eye = torch.eye(3, dtype=a.dtype, device=a.device)
+    b1 = _unit(a1, eye[0].expand_as(a1))
+    # a2 scaled first, so that the projection is computed on numbers of order 1
+    a2 = torch.nan_to_num(a2, nan=0.0, posinf=0.0, neginf=0.0)
+    a2 = a2 / a2.abs().amax(-1, keepdim=True).clamp_min(torch.finfo(a.dtype).tiny)
+    # fallback for a2 ~ parallel to b1: the axis least aligned with b1, projected off it
+    axis = eye[b1.abs().argmin(-1)]
+    alt = axis - (b1 * axis).sum(-1, keepdim=True) * b1
+    alt = alt / alt.norm(dim=-1, keepdim=True)
+    # a residual below sqrt(machine eps) of |a2| ~ 1 is rounding noise: a2 is parallel to b1
+    r = a2 - (b1 * a2).sum(-1, keepdim=True) * b1
+    n = r.norm(dim=-1, keepdim=True)
+    ok = n > torch.finfo(a.dtype).eps ** 0.5
+    b2 = torch.where(ok, r / torch.where(ok, n, torch.ones_like(n)), alt)
+    b2 = b2 - (b1 * b2).sum(-1, keepdim=True) * b1  # second pass: orthogonal to rounding precision
+    b2 = b2 / b2.norm(dim=-1, keepdim=True)
     b3 = torch.cross(b1, b2, dim=-1)
     return torch.stack([b1, b2, b3], -1)
 

@@ -5,12 +5,16 @@ rendered depth compares directly with the sensor's depth image.
 
 Compositing (packed samples, ray_index sorted): tau_i = sigma_i * delta_i,
     T_i = exp(-sum_{j < i, same ray} tau_j)   (an EXCLUSIVE cumulative sum, never a cumprod)
+The sum runs over each ray's own samples (a [rays, max samples per ray] layout), not as differences of
+one cumulative sum over the whole batch: those lose float32 precision once earlier rays have summed
+large optical depths (an opaque ray before a thin one changed the thin ray's weights by 3 %).
     w_i = T_i * (1 - exp(-tau_i)),  C = sum_i w_i c_i,  D = sum_i w_i t_i,  A = sum_i w_i
 Example: one ray, sigma = (1, 2) over delta = (0.5, 0.5): tau = (0.5, 1), T = (1, e^-0.5),
 w = (0.393, 0.383), opacity 0.777.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -27,7 +31,13 @@ def pixel_rays(k: Tensor, c2w: Tensor, u: Tensor, v: Tensor) -> tuple[Tensor, Te
 
 def cone_steps(near: float, far: float, step_per_m: float, device: torch.device, max_step_m: float = 0.0) -> Tensor:
     """Sample depths from near to far with dt = t * step_per_m (exponential spacing), dt capped at
-    max_step_m when > 0 (so distant surfaces still get several samples) -> edges [S+1]."""
+    max_step_m when > 0 (so distant surfaces still get several samples) -> edges [S+1]; near == far
+    gives no interval (rays get no samples)."""
+    if not (math.isfinite(near) and math.isfinite(far) and near > 0 and far >= near):
+        raise ValueError(f"need 0 < near <= far (finite, metres) for cone marching, got near={near}, far={far} "
+                         f"(a zero near plane would never advance the exponential steps)")
+    if not step_per_m > 0:
+        raise ValueError(f"step_per_m must be > 0, got {step_per_m}")
     edges = [near]
     t = near
     while t < far:
@@ -98,10 +108,12 @@ def depth_guided(depth: Tensor, dirs: Tensor, n_surface: int, n_free: int, near:
     """Training samples for RGB-D rays: `n_surface` stratified samples in a band around the sensor depth
     [d - b, d + b/2] (b = max(band_min_m, band_rel * d)) and `n_free` in the free space [near, d - b] in
     front of it; rays without valid depth (0) get all samples stratified over [near, far]. Every ray has
-    the same number of samples, sorted by depth. depth [R] metres (z), dirs [R, 3] -> Samples."""
+    the same number of samples, sorted by depth. Non-finite depths (NaN, inf) count as invalid.
+    depth [R] metres (z), dirs [R, 3] -> Samples."""
     r = depth.shape[0]
     dev = depth.device
-    valid = depth > near
+    valid = torch.isfinite(depth) & (depth > near)
+    depth = torch.where(valid, depth, torch.zeros_like(depth))
     b = torch.clamp(depth * band_rel, min=band_min_m)
     s_lo = torch.where(valid, depth - b, torch.full_like(depth, near)).clamp(min=near)
     s_hi = torch.where(valid, depth + 0.5 * b, torch.full_like(depth, far))
@@ -130,18 +142,30 @@ def depth_guided(depth: Tensor, dirs: Tensor, n_surface: int, n_free: int, near:
 
 def composite_weights(sigma: Tensor, delta: Tensor, ray_index: Tensor, n_rays: int) -> tuple[Tensor, Tensor]:
     """Per-sample weights w [S] and per-ray transmittance left after the samples [R]. Packed,
-    ray_index non-decreasing; exclusive cumulative sum per ray."""
+    ray_index non-decreasing; exclusive cumulative sum per ray. sigma >= 0 may be huge or inf (an opaque
+    sample: w = T there, 0 behind it); inf * 0 (an empty interval) counts as no optical depth."""
     tau = sigma * delta
-    cs = torch.cumsum(tau, 0)
-    counts = torch.bincount(ray_index, minlength=n_rays)
-    ends = torch.cumsum(counts, 0)
-    start_cs = torch.zeros(n_rays, dtype=tau.dtype, device=tau.device)
-    has = counts > 0
-    start_cs[has] = (cs - tau)[(ends - counts)[has]]
-    excl = cs - tau - start_cs[ray_index]
+    tau = torch.where(torch.isnan(tau), torch.zeros_like(tau), tau)
+    excl = exclusive_cumsum_per_ray(tau, ray_index, n_rays)
     w = torch.exp(-excl) * (1 - torch.exp(-tau))
     total = torch.zeros(n_rays, dtype=tau.dtype, device=tau.device).index_add_(0, ray_index, tau)
     return w, torch.exp(-total)
+
+
+def exclusive_cumsum_per_ray(x: Tensor, ray_index: Tensor, n_rays: int) -> Tensor:
+    """sum_{j < i, same ray} x_j for packed x [S] (ray_index non-decreasing): scattered into a
+    [n_rays, max samples per ray] layout, summed along each row, gathered back. Exact per ray (no
+    cancellation against other rays' sums) and inf-safe (no subtraction). Example: x = (1, 2, 3) on
+    rays (0, 0, 1) -> (0, 1, 0)."""
+    if x.shape[0] == 0:
+        return x
+    counts = torch.bincount(ray_index, minlength=n_rays)
+    pos = torch.arange(x.shape[0], device=x.device) - (torch.cumsum(counts, 0) - counts)[ray_index]
+    width = int(counts.max()) + 1
+    flat = ray_index * width + pos
+    # row r holds 0, x_r0, x_r1, ...: the running sum at column k is the sum of the samples before sample k
+    dense = x.new_zeros(n_rays * width).index_put((flat + 1,), x)
+    return torch.cumsum(dense.view(n_rays, width), 1).view(-1)[flat]
 
 
 def accumulate(values: Tensor, w: Tensor, ray_index: Tensor, n_rays: int) -> Tensor:
