@@ -104,6 +104,22 @@ def _encode_with_grads(enc: PermutoEncoding, x: Tensor) -> tuple[Tensor, Tensor,
     return f.detach(), x.grad.detach(), enc.table.grad.detach()
 
 
+def _at_kink(enc: PermutoEncoding, x: Tensor, eps: float = 1e-5) -> Tensor:
+    """[N] True where a point lies within eps of a simplex boundary at some level: the encoding is
+    continuous there but d/dx jumps, and either one-sided derivative is right."""
+    xs = enc.bound
+    x = torch.nan_to_num(x.detach().float(), nan=0.0, posinf=xs, neginf=-xs).clamp(-xs, xs)
+    _, keys, _ = simplex(x, enc.coef, enc.shifts)
+    out = torch.zeros(x.shape[0], dtype=torch.bool, device=x.device)
+    for axis in range(3):
+        for sign in (-1.0, 1.0):
+            step = torch.zeros(3, device=x.device)
+            step[axis] = sign * eps * max(1.0, float(x.abs().max()) * 1e-6)
+            _, k1, _ = simplex(x + step, enc.coef, enc.shifts)
+            out |= (k1 != keys).flatten(2).any(-1).any(0)
+    return out
+
+
 def _compare_backends(checks: Checks, tag: str, encs: dict[str, PermutoEncoding], x: Tensor) -> None:
     outs = {k: _encode_with_grads(e, x) for k, e in encs.items()}
     for k, (f, gx, gt) in outs.items():
@@ -112,7 +128,11 @@ def _compare_backends(checks: Checks, tag: str, encs: dict[str, PermutoEncoding]
         (f0, gx0, gt0), (f1, gx1, gt1) = outs["torch"], outs["fused"]
         checks.close(f"encoding[{tag}] fused vs reference: features", f1, f0, atol=1e-5)
         checks.close(f"encoding[{tag}] fused vs reference: d/dtable", gt1, gt0, atol=1e-4, rtol=1e-4)
-        checks.close(f"encoding[{tag}] fused vs reference: d/dx", gx1, gx0, atol=1e-3, rtol=1e-3)
+        # d/dx comes back in x's dtype (bfloat16: 3 significant digits), and jumps at simplex boundaries
+        smooth = ~_at_kink(encs["torch"], x)
+        rtol = max(1e-3, 2 * torch.finfo(x.dtype).eps)
+        checks.close(f"encoding[{tag}] fused vs reference: d/dx", gx1[smooth], gx0[smooth], atol=1e-3, rtol=rtol)
+        checks[-1].detail += f"; {int((~smooth).sum())} of {len(x)} points on simplex boundaries left out"
     else:
         checks.add(f"encoding[{tag}] fused vs reference", True, "skipped: fused kernel unavailable on this device")
 
@@ -323,7 +343,8 @@ def case_all_background(n: int, device: str) -> Checks:
     loss = (instance_loss(p, torch.full((n,), -1, device=device)) + consistency_loss(p, torch.full((n,), -1, device=device), 0)
             + semantic_loss(p, torch.full((n,), 255, device=device), torch.ones(n, device=device)))
     loss.backward()
-    checks.add("panoptic losses with no thing and no labelled ray", float(loss) == 0.0, f"loss {float(loss)}")
+    checks.add("panoptic losses with no thing and no labelled ray", float(loss.detach()) == 0.0,
+               f"loss {float(loss.detach())}")
     checks.finite("panoptic losses with no thing: gradient", grad=p.grad)
     probs = integrate_probs(torch.randn(n, 5, device=device), torch.zeros(n, device=device),
                             torch.arange(n, device=device) // 4, max(n // 4, 1))
