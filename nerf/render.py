@@ -168,6 +168,14 @@ def exclusive_cumsum_per_ray(x: Tensor, ray_index: Tensor, n_rays: int) -> Tenso
     return torch.cumsum(dense.view(n_rays, width), 1).view(-1)[flat]
 
 
+def transmittance(sigma: Tensor, delta: Tensor, ray_index: Tensor, n_rays: int) -> Tensor:
+    """Exclusive transmittance T_i = exp(-sum_{j < i, same ray} sigma_j delta_j) of packed samples [S]
+    (ray_index non-decreasing). Example: sigma = (1, 2), delta = (0.5, 0.5) on one ray -> T = (1, 0.607)."""
+    tau = sigma * delta
+    tau = torch.where(torch.isnan(tau), torch.zeros_like(tau), tau)
+    return torch.exp(-exclusive_cumsum_per_ray(tau, ray_index, n_rays))
+
+
 def accumulate(values: Tensor, w: Tensor, ray_index: Tensor, n_rays: int) -> Tensor:
     """sum_i w_i v_i per ray: values [S, C] or [S] -> [R, C] or [R]."""
     if values.dim() == 1:
