@@ -45,6 +45,14 @@ class NerfConfig:
     """steps of each validation-pose registration."""
     depth_loss_weight: float = 0.1
     """weight of the depth loss (only on rays whose poses are detached, so it never moves poses)."""
+    opacity_loss_weight: float = 0.0
+    """weight of the opacity loss: 1 - opacity reached by the sensor depth (plus a margin), on the rays with
+    valid depth whose poses are detached; makes surfaces opaque so nothing behind them shows in renders."""
+    train_early_stop: float = 0.0
+    """training drops samples whose transmittance (from a density pass without gradients) is below this
+    (0 = keep all): the samples hidden behind opaque surfaces cost a forward and a backward pass and teach nothing."""
+    truncate_at_depth: bool = True
+    """training rays stop a margin past the sensor depth (off = march to the far plane like rendering)."""
     near_m: float = 0.15
     """near plane."""
     far_m: float = 3.5

@@ -20,7 +20,7 @@ from nerf.field import RadianceField, param_count
 from nerf.occupancy import OccupancyGrid
 from nerf.poses import PoseCorrection
 from nerf.render import (Samples, accumulate, candidates, composite_weights, cone_steps, depth_guided, march, pack,
-                         pixel_rays)
+                         pixel_rays, transmittance)
 
 
 class NonFiniteLoss(FloatingPointError):
@@ -130,7 +130,8 @@ class NerfModel:
 
     @torch.no_grad()
     def render_rays(self, o: Tensor, d: Tensor, round_samples: int = 32) -> dict[str, Tensor]:
-        """Render rays in rounds of `round_samples` occupied samples per ray, dropping rays whose
+        """Render rays in rounds of occupied samples per ray (8, 16, then `round_samples` each: most rays
+        meet an opaque surface within their first few occupied samples), dropping rays whose
         transmittance fell below cfg.early_stop_transmittance (or that have no samples left)."""
         n = o.shape[0]
         edges = self.edges(o.device)
@@ -141,10 +142,12 @@ class NerfModel:
         active = torch.arange(n, device=o.device)
         n_samples = 0
         eps = self.cfg.early_stop_transmittance if self.cfg.skip_empty else 0.0
-        r = 0
+        first = 0
         t_all, occ_all = candidates(o, d, edges, occ, jitter=False)
         while active.numel():
-            s = pack(t_all, occ_all, edges, d, first=r * round_samples, max_per_ray=round_samples, rows=active)
+            per_ray = min(round_samples, 8 << min(first // 8, 2)) if self.cfg.skip_empty else round_samples
+            s = pack(t_all, occ_all, edges, d, first=first, max_per_ray=per_ray, rows=active)
+            first += per_ray
             if len(s) == 0:
                 break
             sigma, col, _, _ = self.shade(o[active], d[active], s)
@@ -152,11 +155,10 @@ class NerfModel:
             w = w * trans[active][s.ray_index]
             rgb.index_add_(0, active, accumulate(col, w, s.ray_index, s.n_rays))
             depth.index_add_(0, active, accumulate(s.t_mid, w, s.ray_index, s.n_rays))
-            had = torch.bincount(s.ray_index, minlength=s.n_rays) >= round_samples
+            had = torch.bincount(s.ray_index, minlength=s.n_rays) >= per_ray
             trans[active] = trans[active] * left
             n_samples += len(s)
             active = active[had & (trans[active] > eps)]
-            r += 1
         opacity = 1 - trans
         return {"rgb": rgb, "depth": depth / opacity.clamp_min(1e-6), "opacity": opacity,
                 "samples_per_ray": torch.tensor(n_samples / max(n, 1))}
@@ -264,7 +266,10 @@ def fit_window(data: WindowData, cfg: NerfConfig, device: str = "cpu",
         if cfg.train_sampling == "depth":
             s = depth_guided(dgt, d, cfg.surface_samples, cfg.free_samples, cfg.near_m, cfg.far_m)
         else:
-            s = march(o, d, edges, occ_fn, jitter=True, max_per_ray=cfg.max_samples_per_ray, t_max=t_max)
+            s = march(o, d, edges, occ_fn, jitter=True, max_per_ray=cfg.max_samples_per_ray,
+                      t_max=t_max if cfg.truncate_at_depth else None)
+        if cfg.train_early_stop > 0 and cfg.train_sampling != "depth":
+            s = visible_samples(model, o, d, s, cfg.train_early_stop)
         n_samples_total += len(s)
         sigma, col, _, _ = model.shade(o, d, s)
         wts, left = composite_weights(sigma, s.delta, s.ray_index, s.n_rays)
@@ -277,6 +282,12 @@ def fit_window(data: WindowData, cfg: NerfConfig, device: str = "cpu",
             m = (~pose_rays) & (dgt > 0) & (dgt < cfg.far_m)
             if m.any():
                 loss = loss + cfg.depth_loss_weight * torch.mean(torch.abs(dpred[m] - dgt[m]))
+        if cfg.opacity_loss_weight > 0:
+            # opacity reached by t_max: every sample of a valid-depth ray before it
+            opa = accumulate((s.t_mid <= t_max[s.ray_index]).float(), wts, s.ray_index, s.n_rays)
+            m = (~pose_rays) & (dgt > 0) & (dgt < cfg.far_m)
+            if m.any():
+                loss = loss + cfg.opacity_loss_weight * torch.mean(1 - opa[m])
         if not torch.isfinite(loss):
             raise NonFiniteLoss(f"non-finite loss ({float(loss.detach())}) at step {step}")
         opt.zero_grad(set_to_none=True)
@@ -311,6 +322,16 @@ def fit_window(data: WindowData, cfg: NerfConfig, device: str = "cpu",
     return FitResult(model, final.cpu().numpy().astype(np.float64), cfg.steps, fit_s, val_psnr, train_psnr,
                      float(np.mean(spr)) if spr else float("nan"), float(np.median(render_s)) if render_s else float("nan"),
                      param_count(fld), history, renders)
+
+
+@torch.no_grad()
+def visible_samples(model: NerfModel, o: Tensor, d: Tensor, s: Samples, min_transmittance: float) -> Samples:
+    """The samples whose transmittance T_i (exclusive, from the current density, no gradients) is at least
+    `min_transmittance`: the ones a render with early termination would reach."""
+    x = o.detach()[s.ray_index] + d.detach()[s.ray_index] * s.t_mid[:, None]
+    sigma = model.field.density(model.scene.normalise(x))
+    keep = transmittance(sigma, s.delta, s.ray_index, s.n_rays) >= min_transmittance
+    return Samples(s.ray_index[keep], s.t_mid[keep], s.delta[keep], s.n_rays)
 
 
 def register(model: NerfModel, poses: PoseCorrection, opt: torch.optim.Optimizer, c2w0: Tensor, k: Tensor,
