@@ -63,6 +63,19 @@ class SlotWindow:
         return np.concatenate([np.zeros((len(centre), 1), bool), inside], axis=1)
 
 
+def position_preference(window: SlotWindow, along_m: np.ndarray) -> np.ndarray:
+    """[S] positions along the trajectory -> [S, n_thing_slots + 1] in [0, 1]: the circular distance, in
+    window widths, between each slot and the slot the segment's position maps to (column 0 = stuff, 1).
+    Added with a small weight to the assignment cost it breaks the ties of an untrained instance head
+    the same way in every frame (a fruit's position along the row does not change between frames), so
+    the first assignments are already consistent; learned probabilities outweigh it later."""
+    centre = np.asarray(along_m, np.float64)[:, None] * window.slope_per_m
+    m = np.arange(window.n_thing_slots)[None, :]
+    diff = (m - centre) % window.n_thing_slots
+    dist = np.minimum(diff, window.n_thing_slots - diff) / max(window.width, 1)
+    return np.concatenate([np.ones((len(centre), 1)), np.clip(dist, 0.0, 1.0)], axis=1)
+
+
 def segment_costs(probs: torch.Tensor, seg_index: torch.Tensor, n_segments: int) -> torch.Tensor:
     """Mean slot probability per segment, negated. probs [R, N] (rows sum to 1), seg_index [R] in
     0..n_segments-1 (rays of stuff excluded by the caller) -> cost [n_segments, N]."""

@@ -22,5 +22,10 @@ SCHEMA = table_schema(
     col("samples_per_ray", pa.float64(), "mean samples evaluated per ray when rendering validation images", "samples"),
     col("val_psnr", pa.float64(), "mean PSNR over the validation frames (poses registered to the frozen model)", "dB"),
     col("train_psnr", pa.float64(), "mean PSNR over the training frames", "dB"),
+    col("panoptic_steps", pa.int32(), "steps of the panoptic phase (0 = panoptic off)"),
+    col("panoptic_fit_s", pa.float64(), "wall time of the panoptic phase (included in nothing else)", "s"),
+    col("panoptic_params", pa.int64(), "trainable parameters of the panoptic part (delta grid + heads)"),
+    col("n_slots", pa.int32(), "instance slots of the window, slot 0 = stuff"),
+    col("id_window_width", pa.int32(), "width of the repeated-ID rejection window in slots (0 = off)"),
     col("checkpoint_path", pa.string(), "model checkpoint (torch.save), relative to data/; '' if failed"),
 )

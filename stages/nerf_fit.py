@@ -11,12 +11,14 @@ import numpy as np
 import pandas as pd
 
 from nerf.config import NerfConfig, preset
+from nerf.panoptic_fit import PanopticConfig
 from nerf.geometry import pose_matrix, pose_txyzq, rotation_angle_deg
 from pipeline import parallel
-from pipeline.images import read_depth_m, read_rgb, write_png
+from pipeline.classes import VOID
+from pipeline.images import read_depth_m, read_label, read_rgb, write_png
 from pipeline.stage import StageContext
 
-INPUTS = ("frames", "windows")
+INPUTS = ("frames", "windows", "detections_filtered")
 OUTPUTS = ("window_poses", "window_metrics", "nerf")
 OPTIONAL_INPUTS = ("colmap_poses",)  # initial poses when pose_source = colmap
 
@@ -58,6 +60,8 @@ class Config:
     """fit at most this many windows (0 = all)."""
     seed: int = 0
     """random seed of the fits."""
+    panoptic: PanopticConfig = field(default_factory=PanopticConfig)
+    """the panoptic phase after the colour phase (nerf/panoptic_fit.py)."""
 
 
 def model_config(cfg: Config) -> NerfConfig:
@@ -75,6 +79,43 @@ def load_window(frames: pd.DataFrame, data_root: Path):
     k = frames[["fx", "fy", "cx", "cy"]].to_numpy(np.float64)
     poses = pose_matrix(frames[["tx", "ty", "tz", "qx", "qy", "qz", "qw"]].to_numpy(np.float64))
     return WindowData(imgs, deps, k, poses, (frames["split"] == "train").to_numpy(), frames["frame_id"].to_numpy())
+
+
+def load_labels(frames: pd.DataFrame, dets: pd.DataFrame | None, data_root: Path):
+    """The detector's panoptic input of a window's frames (nerf/panoptic_fit.WindowLabels): segments the
+    depth filter dropped become void, thing pixels carry their segment's score, stuff pixels 1."""
+    from nerf.panoptic_fit import WindowLabels
+
+    sems, insts, confs = [], [], []
+    h, w = int(frames["height"].iloc[0]), int(frames["width"].iloc[0])
+    for fid, sp, ip in zip(frames["frame_id"], frames["det_semantic_path"], frames["det_instance_path"]):
+        if not isinstance(sp, str) or not isinstance(ip, str):  # no detector output for this frame: all void
+            sems.append(np.full((h, w), VOID, np.uint8))
+            insts.append(np.zeros((h, w), np.int32))
+            confs.append(np.zeros((h, w), np.float32))
+            continue
+        sem = read_label(data_root / sp, "detector semantic").astype(np.uint8)
+        inst = read_label(data_root / ip, "detector instance")
+        if sem.shape != (h, w) or inst.shape != (h, w):
+            raise ValueError(f"frame {fid}: detector PNGs {sp} / {ip} are {sem.shape} / {inst.shape}, "
+                             f"the images are {(h, w)}")
+        conf = np.where(sem == VOID, 0.0, 1.0).astype(np.float32)
+        if dets is not None:
+            fd = dets[dets.frame_id == fid]
+            lut_keep = np.ones(int(max(inst.max(), fd.segment_id.max() if len(fd) else 0)) + 1, bool)
+            lut_score = np.ones(len(lut_keep), np.float32)
+            lut_keep[fd.segment_id.to_numpy()] = fd.kept.to_numpy()
+            lut_score[fd.segment_id.to_numpy()] = fd.score.to_numpy()
+            on = inst > 0
+            conf[on] = lut_score[inst[on]]
+            drop = on & ~lut_keep[inst]
+            sem[drop] = VOID
+            inst[drop] = 0
+            conf[drop] = 0.0
+        sems.append(sem)
+        insts.append(inst)
+        confs.append(conf)
+    return WindowLabels(np.stack(sems), np.stack(insts), np.stack(confs))
 
 
 def initial_poses(w: pd.DataFrame, wid: int, colmap: pd.DataFrame | None, source: str) -> pd.DataFrame:
@@ -100,6 +141,12 @@ def initial_poses(w: pd.DataFrame, wid: int, colmap: pd.DataFrame | None, source
     return w
 
 
+def _window_detections(dets: pd.DataFrame | None, w: pd.DataFrame) -> dict | None:
+    if dets is None or dets.empty:
+        return None
+    return dets[dets.frame_id.isin(w.frame_id)][["frame_id", "segment_id", "score", "kept"]].to_dict("list")
+
+
 def fit_one(payload: dict) -> dict:
     """Runs in a Dask worker: fit, save checkpoint and renders, return table rows."""
     import torch
@@ -117,16 +164,31 @@ def fit_one(payload: dict) -> dict:
         raise RuntimeError(f"window {wid}: {err}") from err
     wdir = out_dir / f"window_{wid:03d}"
     (wdir / "renders").mkdir(parents=True, exist_ok=True)
-    torch.save(res.model.state(), wdir / "checkpoint.pt")
-    render_rows = []
+    state = res.model.state()
+    pan = None
+    pcfg = payload["panoptic"]
+    if pcfg.enabled:
+        from nerf.panoptic_fit import fit_panoptic, render_panoptic
+
+        labels = load_labels(frames, pd.DataFrame(payload["detections"]) if payload["detections"] else None, data_root)
+        try:
+            pan = fit_panoptic(res.model, labels, data.is_train, data.depths, pcfg, seed=payload["cfg"].seed,
+                               progress=lambda s, n, info: parallel.report(key, s, n, phase="panoptic", **info))
+        except Exception as err:
+            raise RuntimeError(f"window {wid} (panoptic phase): {err}") from err
+        state["panoptic"] = pan.state()
+    torch.save(state, wdir / "checkpoint.pt")
     for i in np.flatnonzero(~data.is_train):
         out = res.renders[int(i)]
         fid = int(data.frame_ids[i])
-        rgb = (out["rgb"].clamp(0, 1).numpy() * 255).round().astype(np.uint8)
-        depth_mm = np.clip(out["depth"].numpy() * 1000, 0, 65535).round().astype(np.uint16)
+        if pan is not None:
+            out = render_panoptic(res.model, pan, int(i))
+            write_png(wdir / "renders" / f"semantic_{fid:06d}.png", out["semantic"].astype(np.uint8))
+            write_png(wdir / "renders" / f"instance_{fid:06d}.png", out["instance"].astype(np.uint16))
+        rgb = (out["rgb"].clamp(0, 1).cpu().numpy() * 255).round().astype(np.uint8)
+        depth_mm = np.clip(out["depth"].cpu().numpy() * 1000, 0, 65535).round().astype(np.uint16)
         write_png(wdir / "renders" / f"rgb_{fid:06d}.png", rgb)
         write_png(wdir / "renders" / f"depth_{fid:06d}.png", depth_mm)
-        render_rows.append(fid)
     init = data.poses_c2w
     final = res.poses_c2w
     dt = np.linalg.norm(final[:, :3, 3] - init[:, :3, 3], axis=1)
@@ -143,6 +205,9 @@ def fit_one(payload: dict) -> dict:
                "samples_per_ray": res.samples_per_ray,
                "val_psnr": float(np.mean(list(res.val_psnr.values()))) if res.val_psnr else float("nan"),
                "train_psnr": res.train_psnr, "threads": torch.get_num_threads(),
+               "panoptic_steps": pan.steps if pan else 0, "panoptic_fit_s": pan.fit_s if pan else 0.0,
+               "panoptic_params": pan.params if pan else 0, "n_slots": pan.n_slots if pan else 0,
+               "id_window_width": pan.slot_window.width if pan and pan.slot_window else 0,
                "checkpoint": f"window_{wid:03d}/checkpoint.pt"}
     return {"poses": poses.to_dict("list"), "metrics": metrics}
 
@@ -159,6 +224,7 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
     out_dir = ctx.output_dir("nerf")
     payloads = {}
     colmap = inputs.get("colmap_poses")
+    dets = inputs.get("detections_filtered")
     for wid in wids:
         w = windows[windows.window_id == wid].merge(frames, on="frame_id", how="left")
         if w["rgb_path"].isna().any():
@@ -166,7 +232,8 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
         w = initial_poses(w, int(wid), colmap, cfg.pose_source)
         payloads[str(wid)] = {"window_id": int(wid), "frames": w.to_dict("list"), "cfg": replace(mcfg, seed=cfg.seed + int(wid)),
                               "device": ctx.device, "out_dir": str(out_dir.resolve()),
-                              "data_root": str(ctx.data_root.resolve())}
+                              "data_root": str(ctx.data_root.resolve()), "panoptic": cfg.panoptic,
+                              "detections": _window_detections(dets, w)}
     n_workers = cfg.workers or parallel.default_workers(len(payloads))
     threads = cfg.threads_per_worker or max(1, (os.cpu_count() or 1) // n_workers)
     outcomes = parallel.map_tasks(fit_one, payloads, n_workers=n_workers, threads_per_worker=threads,
@@ -185,7 +252,9 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
             ctx.count("windows_failed")
             metric_rows.append({**base, "status": "failed", "error": msg, "threads": threads, "params": 0, "steps": 0,
                                 "fit_s": o.seconds, "render_s_per_image": np.nan, "samples_per_ray": np.nan,
-                                "val_psnr": np.nan, "train_psnr": np.nan, "checkpoint_path": ""})
+                                "val_psnr": np.nan, "train_psnr": np.nan, "checkpoint_path": "",
+                                "panoptic_steps": 0, "panoptic_fit_s": 0.0, "panoptic_params": 0, "n_slots": 0,
+                                "id_window_width": 0})
             continue
         m = dict(o.result["metrics"])
         m["checkpoint_path"] = ctx.relpath("nerf", m.pop("checkpoint"))

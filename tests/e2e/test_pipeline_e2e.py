@@ -9,7 +9,9 @@ from pipeline.runner import Runner
 TINY = ["--set", "synth.n_frames=12", "--set", "synth.width=64", "--set", "synth.height=40",
         "--set", "synth.n_labelled=2", "--set", "synth.supersample=1", "--set", "synth.workers=1",
         "--set", "windows.half_width=3", "--set", "nerf_fit.model.steps=20", "--set", "nerf_fit.model.rays_per_step=128",
-        "--set", "nerf_fit.model.n_levels=4", "--set", "nerf_fit.model.log2_capacity=12"]
+        "--set", "nerf_fit.model.n_levels=4", "--set", "nerf_fit.model.log2_capacity=12",
+        "--set", "nerf_fit.panoptic.steps=20", "--set", "nerf_fit.panoptic.rays_per_frame=64",
+        "--set", "nerf_fit.panoptic.frames_per_step=2"]
 
 
 def active_stages(root) -> list[str]:
@@ -37,6 +39,16 @@ def test_every_stage_ran_and_wrote_its_outputs(run_dir):
     poses = pd.read_parquet(run_dir / "processed" / "synth_tiny" / "window_poses.parquet")
     assert set(poses["window_id"]) == {0, 1}
     assert (run_dir / metrics["checkpoint_path"].iloc[0]).is_file()
+    assert (metrics["panoptic_steps"] == 20).all() and (metrics["n_slots"] > 2).all()
+    renders = run_dir / "processed" / "synth_tiny" / "nerf" / "window_000" / "renders"
+    val = w[(w.window_id == 0) & (w.split == "val")].frame_id
+    for kind in ("rgb", "depth", "semantic", "instance"):
+        assert {int(p.stem.split("_")[1]) for p in renders.glob(f"{kind}_*.png")} == set(val), kind
+    processed = run_dir / "processed" / "synth_tiny"
+    assert len(pd.read_parquet(processed / "panoptic_frames.parquet")) > 0
+    ev = pd.read_parquet(processed / "evaluation.parquet")
+    assert {"pq", "miou", "pq_detector", "count_gt", "count_pred"} <= set(ev.metric)
+    assert (processed / "report" / "report.html").is_file()
     for stage in STAGE_ORDER:
         ran = stage in active_stages(run_dir)
         assert (interim / "_manifest" / f"{stage}.json").is_file() == ran, stage

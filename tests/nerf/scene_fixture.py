@@ -6,7 +6,9 @@ from stages import synth
 from synthetic import render, scene, trajectory
 
 
-def tiny_window(n=6, w=40, h=24, seed=0) -> WindowData:
+def tiny_window(n=6, w=40, h=24, seed=0, labels=False):
+    """WindowData of n frames (odd ones train); with labels=True also the ground-truth semantic and
+    instance images [n, h, w]."""
     cfg = synth.Config(width=w, height=h, n_frames=n, seed=seed)
     k = synth.intrinsics(cfg)
     poses = []
@@ -19,6 +21,9 @@ def tiny_window(n=6, w=40, h=24, seed=0) -> WindowData:
     layout = synth.row_layout(cfg, poses[:, 0, 3], float(poses[0, 1, 3]), float(poses[0, 2, 3]), k)
     sc = scene.build_scene(layout, seed)
     frames = [render.render(sc, p, k, w, h, 1) for p in poses]
-    return WindowData(np.stack([f["rgb"] for f in frames]), np.stack([f["depth"] for f in frames]),
+    data = WindowData(np.stack([f["rgb"] for f in frames]), np.stack([f["depth"] for f in frames]),
                       np.tile([k[0, 0], k[1, 1], k[0, 2], k[1, 2]], (n, 1)), poses, np.arange(n) % 2 == 1,
                       np.arange(n))
+    if labels:
+        return data, np.stack([f["semantic"] for f in frames]), np.stack([f["instance"] for f in frames]).astype(np.int32)
+    return data

@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 import torch
 
-from nerf.assignment import OUTSIDE_COST, SlotWindow, along_track, assign, segment_costs
+from nerf.assignment import OUTSIDE_COST, SlotWindow, along_track, assign, position_preference, segment_costs
 
 
 def test_segment_costs_are_minus_mean_probability():
@@ -57,3 +57,19 @@ def test_along_track_follows_the_trajectory_direction():
     cams = np.stack([np.linspace(0, 1, 5), np.zeros(5), np.zeros(5)], 1)[::-1] + [0, 0.6, 0]
     s = along_track(np.array([[1.0, 0.0, 0.2], [0.5, 1.0, 0.0]]), cams)
     assert s == pytest.approx([0.0, 0.5])
+
+
+def test_position_preference_makes_untrained_assignments_agree_between_frames():
+    win = SlotWindow.for_scene(max_fruits_per_frustum=4, frustum_length_m=0.4, n_slots=33)
+    uniform = -np.full((3, 33), 1 / 33)
+    # the same three fruits (positions along the row) seen in two frames, listed in different orders
+    along_a = np.array([0.10, 0.22, 0.31])
+    order = np.array([2, 0, 1])
+    slots = []
+    for along in (along_a, along_a[order]):
+        cost = uniform + 0.05 * position_preference(win, along)
+        slots.append(assign(cost, win.allowed(along)))
+    assert np.array_equal(slots[0][order], slots[1])          # each fruit got the same slot in both frames
+    assert len(set(slots[0])) == 3 and 0 not in slots[0]
+    pref = position_preference(win, along_a)
+    assert pref.shape == (3, 33) and (pref[:, 0] == 1).all() and (pref >= 0).all() and (pref <= 1).all()

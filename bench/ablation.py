@@ -1,0 +1,149 @@
+"""Panoptic ablation on one window: with and without the ID window (repeated-ID rejection), and
+delta grid vs one shared grid vs two independent grids. The colour phase is fitted once; every
+variant trains its panoptic phase on its own copy of it, in one process, with the same seed, and is
+scored on every validation frame against the sequence's ground truth (the detector input scored on
+the same frames for reference).
+
+Output `ablation.parquet`, one row per variant: variant, grid_mode, id_window, val_psnr (dB), pq, sq,
+rq, pq_things, pq_stuff, miou, id_consistency, fruits_scored, pq_detector, miou_detector,
+params (colour + panoptic), panoptic_params, colour_fit_s, panoptic_fit_s, fit_s (colour + panoptic),
+render_s_per_image; and `ablation.png` (PQ, mIoU and ID consistency per variant).
+
+    pag bench ablation [--seq synth_row] [--window 1] [--colour-steps 0 (preset)] [--panoptic-steps 0 (default)]
+"""
+from __future__ import annotations
+
+import argparse
+import copy
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import torch
+
+from bench._common import write_parquet
+from nerf.config import preset
+from nerf.field import param_count
+from nerf.panoptic_fit import PanopticConfig, fit_panoptic, render_panoptic
+from nerf.panoptic_metrics import ConfusionAccumulator, PanopticAccumulator, dominant_ids, id_consistency
+from nerf.trainer import fit_window, psnr
+from pipeline.classes import N_CLASSES, THING_IDS, VOID
+from pipeline.images import read_label
+from pipeline.io import read_table
+from stages.nerf_fit import load_labels, load_window
+
+VARIANTS: dict[str, dict] = {
+    "delta + ID window (ours)": dict(grid_mode="delta", id_window=True),
+    "delta, no ID window": dict(grid_mode="delta", id_window=False),
+    "shared grid + ID window": dict(grid_mode="shared", id_window=True),
+    "independent grids + ID window": dict(grid_mode="independent", id_window=True),
+}
+
+
+def ground_truth(row: pd.Series, gt_segments: pd.DataFrame, data_root: Path) -> tuple[np.ndarray, np.ndarray]:
+    """Ground-truth semantic/instance of a frame; segments the depth filter dropped (the far row) are void,
+    as the detector's are for training."""
+    if not isinstance(row.gt_semantic_path, str):
+        raise ValueError(f"frame {row.frame_id} has no ground truth; the ablation needs a synthetic row")
+    sem = read_label(data_root / row.gt_semantic_path, "ground-truth semantic")
+    inst = read_label(data_root / row.gt_instance_path, "ground-truth instance")
+    dropped = gt_segments.loc[(gt_segments.frame_id == row.frame_id) & ~gt_segments.kept, "instance_id"].to_numpy()
+    off = (inst > 0) & np.isin(inst, dropped)
+    return np.where(off, VOID, sem), np.where(off, 0, inst)
+
+
+def score(preds: list[tuple[np.ndarray, np.ndarray]], gts: list[tuple[np.ndarray, np.ndarray]]) -> dict[str, float]:
+    stuff = {c for c in range(N_CLASSES) if c not in THING_IDS}
+    acc, conf, per_frame = PanopticAccumulator(set(THING_IDS), stuff), ConfusionAccumulator(N_CLASSES), []
+    for (ps, pi), (gs, gi) in zip(preds, gts):
+        acc.update(ps, pi, gs, gi)
+        conf.update(ps, gs)
+        per_frame.append(dominant_ids(gi, pi, [f for f in np.unique(gi) if f > 0]))
+    out = acc.compute()
+    ids, n = id_consistency(per_frame)
+    return {"pq": out["pq"], "sq": out["sq"], "rq": out["rq"], "pq_things": out["pq_things"],
+            "pq_stuff": out["pq_stuff"], "miou": conf.miou(), "id_consistency": ids, "fruits_scored": n}
+
+
+def run(seq: str = "synth_row", window: int = 1, colour_steps: int = 0, panoptic_steps: int = 0, threads: int = 2,
+        data_root: Path = Path("data"), out_dir: Path = Path("data/bench")) -> pd.DataFrame:
+    torch.set_num_threads(threads)
+    interim = data_root / "interim" / seq
+    frames = read_table(interim / "frames.parquet", "frames")
+    windows = read_table(interim / "windows.parquet", "windows")
+    dets = read_table(interim / "detections_filtered.parquet", "detections")
+    gt_segments = read_table(interim / "gt_segments.parquet", "gt_segments")
+    w = windows[windows.window_id == window].merge(frames, on="frame_id")
+    if w.empty:
+        raise ValueError(f"window {window} not in {seq}; windows: {sorted(windows.window_id.unique())}")
+    data = load_window(w, data_root)
+    labels = load_labels(w, dets, data_root)
+    val = np.flatnonzero(~data.is_train)
+    gts = [ground_truth(w.iloc[i], gt_segments, data_root) for i in val]
+    det = score([(labels.semantic[i], labels.instance[i]) for i in val], gts)
+    cfg = preset("cpu", **({"steps": colour_steps} if colour_steps else {}))
+    t0 = time.perf_counter()
+    colour = fit_window(data, cfg)
+    colour_s = time.perf_counter() - t0
+    base = PanopticConfig(**({"steps": panoptic_steps} if panoptic_steps else {}))
+    rows = []
+    for name, change in VARIANTS.items():
+        model = copy.deepcopy(colour.model)
+        pres = fit_panoptic(model, labels, data.is_train, data.depths, replace(base, **change), seed=cfg.seed)
+        preds, psnrs, render_s = [], [], []
+        for i in val:
+            t1 = time.perf_counter()
+            r = render_panoptic(model, pres, int(i))
+            render_s.append(time.perf_counter() - t1)
+            preds.append((r["semantic"], r["instance"]))
+            psnrs.append(psnr(r["rgb"], torch.from_numpy(data.images[i]).float() / 255.0))
+        rows.append({"variant": name, **change, "val_psnr": float(np.mean(psnrs)), **score(preds, gts),
+                     "pq_detector": det["pq"], "miou_detector": det["miou"],
+                     "params": param_count(model.field) + pres.params, "panoptic_params": pres.params,
+                     "colour_fit_s": colour_s, "panoptic_fit_s": pres.fit_s, "fit_s": colour_s + pres.fit_s,
+                     "render_s_per_image": float(np.median(render_s)), "seq": seq, "window": window})
+        print(f"{name}: PQ {rows[-1]['pq']:.3f} mIoU {rows[-1]['miou']:.3f} ID {rows[-1]['id_consistency']:.3f}",
+              flush=True)
+    df = pd.DataFrame(rows)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    write_parquet(df, out_dir / "ablation.parquet")
+    plot(df, out_dir / "ablation.png")
+    return df
+
+
+def plot(df: pd.DataFrame, path: Path) -> None:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    metrics = ["pq", "miou", "id_consistency"]
+    x = np.arange(len(df))
+    fig, ax = plt.subplots(figsize=(9, 4))
+    for j, m in enumerate(metrics):
+        ax.bar(x + (j - 1) * 0.27, df[m] * 100, 0.27, label=m)
+    ax.axhline(df.pq_detector.iloc[0] * 100, color="k", ls="--", lw=1, label="detector PQ")
+    ax.set_xticks(x, df.variant, rotation=12, fontsize=8)
+    ax.set_ylabel("%")
+    ax.set_title(f"panoptic ablation, {df.seq.iloc[0]} window {df.window.iloc[0]}")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="pag bench ablation", description=__doc__.split("\n")[0])
+    p.add_argument("--seq", default="synth_row")
+    p.add_argument("--window", type=int, default=1)
+    p.add_argument("--colour-steps", type=int, default=0, help="colour steps (0 = the cpu preset's)")
+    p.add_argument("--panoptic-steps", type=int, default=0, help="panoptic steps (0 = the default)")
+    p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--data-root", type=Path, default=Path("data"))
+    p.add_argument("--out", type=Path, default=Path("data/bench"))
+    a = p.parse_args(argv)
+    df = run(a.seq, a.window, a.colour_steps, a.panoptic_steps, a.threads, a.data_root, a.out)
+    cols = ["variant", "val_psnr", "pq", "miou", "id_consistency", "pq_detector", "miou_detector", "params", "fit_s"]
+    print(df[cols].to_string(index=False, float_format=lambda v: f"{v:.3f}"))
+    return 0

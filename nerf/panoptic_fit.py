@@ -1,0 +1,414 @@
+"""The panoptic phase of a window's fit, and panoptic rendering.
+
+After the colour phase (trainer.fit_window) the radiance field, the occupancy grid and the poses are
+frozen; this phase trains only the panoptic part (nerf/panoptic.py: delta grid + semantic and instance
+heads) from the detector's per-frame segments of the training frames:
+
+    L = w_sem * L_sem + w_inst * L_inst + w_stuff * L_stuff + w_cons * L_cons      (nerf/panoptic_losses.py)
+
+Each step takes a few training frames and rays in each (half of them on thing segments, so small
+fruits are not starved), renders them with the frozen colour field (no gradient: the colour weights
+are detached anyway, so panoptic losses can move neither density nor poses), integrates the
+semantic and instance probabilities, assigns each frame's thing segments to instance slots with
+linear_sum_assignment (nerf/assignment.py) and takes a step on the losses. With repeated-ID
+rejection on, a segment may only take the slots of the sliding window at its 3D position along the
+trajectory (its rays un-projected with the rendered depth).
+
+Samples whose colour weight is below `min_weight` do not reach the panoptic heads (they could move a
+ray's distribution by at most that weight); this is what makes the phase cheap.
+"""
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+from typing import Literal
+
+import numpy as np
+import torch
+from scipy import ndimage
+from torch import Tensor
+
+from nerf.assignment import SlotWindow, along_track, assign, position_preference, segment_costs
+from nerf.field import param_count
+from nerf.panoptic import PanopticField, integrate_probs
+from nerf.panoptic_losses import consistency_loss, instance_loss, semantic_loss
+from nerf.render import candidates, composite_weights, pack, pixel_rays
+
+VOID = 255
+
+
+@dataclass(frozen=True)
+class PanopticConfig:
+    enabled: bool = True
+    """train the panoptic part and write semantic/instance renders (off = colour only)."""
+    steps: int = 500
+    """steps of the panoptic phase (after the colour phase)."""
+    frames_per_step: int = 4
+    """training frames per step (each frame's segments are assigned to slots on their own)."""
+    rays_per_frame: int = 384
+    """rays per frame and step."""
+    thing_ray_share: float = 0.5
+    """share of a frame's rays drawn from its thing (fruit) segments."""
+    grid_mode: Literal["delta", "shared", "independent"] = "delta"
+    """panoptic features: delta grid on top of the frozen colour grid (PAg-NeRF), the colour grid itself
+    ('shared', panoptic losses then train it too), or an independent full-size grid."""
+    n_slots: int = 0
+    """instance slots including slot 0 = stuff (0 = automatic: 1 + 3 x the ID window width)."""
+    id_window: bool = True
+    """repeated-ID rejection: restrict each segment to the slot window at its position along the row."""
+    id_window_margin: int = 4
+    """slots added to the busiest training frame's segment count to give the ID window width."""
+    position_prior: float = 0.05
+    """with the ID window: weight of the slot preference from the segment's position along the row, which
+    breaks the untrained head's ties alike in every frame (costs lie in [-1, 0])."""
+    w_semantic: float = 1.0
+    """weight of the confidence-weighted semantic cross entropy."""
+    w_instance: float = 1.0
+    """weight of the instance loss on thing rays (targets from the assignment)."""
+    w_stuff: float = 1.0
+    """weight of the loss pulling stuff rays to slot 0."""
+    w_consistency: float = 0.1
+    """weight of the segment-consistency loss."""
+    lr_grid: float = 1e-2
+    """Adam learning rate of the panoptic grid."""
+    lr_mlp: float = 1e-2
+    """Adam learning rate of the semantic and instance heads."""
+    min_weight: float = 1e-2
+    """samples with a smaller colour weight skip the panoptic heads."""
+    min_segment_px: int = 12
+    """post-processing: rendered instances smaller than this (after the 3x3 opening) are dropped."""
+    n_classes: int = 5
+    """semantic classes (pipeline/classes.py)."""
+    thing_classes: tuple[int, ...] = (2, 3, 4)
+    """semantic classes that are things (have instances)."""
+
+
+@dataclass
+class WindowLabels:
+    """The detector's per-frame panoptic input of a window, aligned with WindowData's frames."""
+
+    semantic: np.ndarray
+    """[N, H, W] uint8 class id, 255 = void (no detection, or a segment the depth filter dropped)."""
+    instance: np.ndarray
+    """[N, H, W] int32 per-frame segment id (0 = stuff / none); ids mean nothing across frames."""
+    confidence: np.ndarray
+    """[N, H, W] float32 detector confidence of the pixel's segment (1 for stuff, 0 for void)."""
+
+    def __post_init__(self) -> None:
+        if not (self.semantic.shape == self.instance.shape == self.confidence.shape):
+            raise ValueError(f"WindowLabels shapes differ: semantic {self.semantic.shape}, instance "
+                             f"{self.instance.shape}, confidence {self.confidence.shape}")
+        self.confidence = np.nan_to_num(self.confidence.astype(np.float32), nan=0.0, posinf=1.0, neginf=0.0).clip(0, 1)
+
+
+@dataclass
+class PanopticResult:
+    field: PanopticField
+    cfg: PanopticConfig
+    slot_window: SlotWindow | None
+    n_slots: int
+    steps: int
+    fit_s: float
+    params: int
+    history: list[dict] = field(default_factory=list)
+    assignments: int = 0
+    """segment-to-slot assignments made."""
+    overflow_segments: int = 0
+    """segments that found no free slot in their frame (more segments than slots)."""
+
+    def state(self) -> dict:
+        return {"cfg": asdict(self.cfg), "field": self.field.state_dict(), "n_slots": self.n_slots,
+                "slot_window": asdict(self.slot_window) if self.slot_window else None}
+
+
+def panoptic_field(model, cfg: PanopticConfig, n_slots: int) -> PanopticField:
+    """The panoptic part sized after the colour grid of `model` (trainer.NerfModel)."""
+    mc, enc = model.cfg, model.field.grid
+    cap = mc.log2_capacity_delta if cfg.grid_mode == "delta" else mc.log2_capacity
+    return PanopticField(mc.n_levels, mc.n_features, cap, float(enc.scales[0]), float(enc.scales[-1]), cfg.n_classes,
+                         n_slots, mode=cfg.grid_mode, hidden=mc.hidden, seed=mc.seed + 1)
+
+
+@dataclass
+class KeptSamples:
+    """Samples of a ray batch that carry colour weight, with what the panoptic heads need."""
+
+    x: Tensor        # [S, 3] normalised positions
+    g: Tensor        # [S, L*F] colour-grid features (detached unless the grid is shared)
+    w: Tensor        # [S] colour weights (detached)
+    ray_index: Tensor
+    n_rays: int
+    rgb: Tensor      # [R, 3]
+    depth: Tensor    # [R] z-depth, metres (expected termination depth / opacity)
+    opacity: Tensor  # [R]
+    n_evaluated: int
+
+
+def weighted_samples(model, o: Tensor, d: Tensor, min_weight: float, round_samples: int = 32,
+                     keep_grad_features: bool = False) -> KeptSamples:
+    """March rays through the frozen colour model in rounds with early termination (as rendering does)
+    and keep the samples with weight >= min_weight."""
+    n = o.shape[0]
+    dev = o.device
+    cfg = model.cfg
+    edges = model.edges(dev)
+    occ = model.occupied_fn()
+    eps = cfg.early_stop_transmittance if cfg.skip_empty else 0.0
+    rgb = torch.zeros(n, 3, device=dev)
+    depth = torch.zeros(n, device=dev)
+    trans = torch.ones(n, device=dev)
+    active = torch.arange(n, device=dev)
+    xs, gs, ws, rs = [], [], [], []
+    n_eval = 0
+    with torch.no_grad():
+        t_all, occ_all = candidates(o, d, edges, occ, jitter=False)
+    r = 0
+    while active.numel():
+        with torch.no_grad():
+            s = pack(t_all, occ_all, edges, d, first=r * round_samples, max_per_ray=round_samples, rows=active)
+        if len(s) == 0:
+            break
+        with torch.set_grad_enabled(keep_grad_features):
+            sigma, col, x, g = model.shade(o[active], d[active], s)
+        with torch.no_grad():
+            w, left = composite_weights(sigma.detach(), s.delta, s.ray_index, s.n_rays)
+            w = w * trans[active][s.ray_index]
+            ray = active[s.ray_index]
+            rgb.index_add_(0, ray, w[:, None] * col.detach())
+            depth.index_add_(0, ray, w * s.t_mid)
+            keep = w >= min_weight
+            had = torch.bincount(s.ray_index, minlength=s.n_rays) >= round_samples
+            trans[active] = trans[active] * left
+        xs.append(model.scene.normalise(x.detach()[keep]))
+        gs.append(g[keep] if keep_grad_features else g.detach()[keep])
+        ws.append(w[keep])
+        rs.append(ray[keep])
+        n_eval += len(s)
+        active = active[had & (trans[active] > eps)]
+        r += 1
+    opacity = 1 - trans
+    width = model.field.grid.out_dim
+    cat = lambda parts, shape: torch.cat(parts) if parts else torch.zeros(shape, device=dev)  # noqa: E731
+    ray_index = cat(rs, (0,)).long()
+    order = torch.argsort(ray_index, stable=True)
+    return KeptSamples(cat(xs, (0, 3))[order], cat(gs, (0, width))[order], cat(ws, (0,))[order], ray_index[order], n,
+                       rgb, depth / opacity.clamp_min(1e-6), opacity, n_eval)
+
+
+def ray_probs(pfield: PanopticField, ks: KeptSamples) -> tuple[Tensor, Tensor]:
+    """Per-ray semantic [R, D] and instance [R, N] distributions (rows sum to 1)."""
+    if len(ks.w) == 0:
+        d, n = pfield.semantic[-1].out_features, pfield.instance[-1].out_features
+        return torch.full((ks.n_rays, d), 1.0 / d), torch.full((ks.n_rays, n), 1.0 / n)
+    sem_logits, inst_logits = pfield(ks.x, ks.g)
+    return (integrate_probs(sem_logits, ks.w, ks.ray_index, ks.n_rays),
+            integrate_probs(inst_logits, ks.w, ks.ray_index, ks.n_rays))
+
+
+def slot_window_for(labels: WindowLabels, is_train: np.ndarray, depths: np.ndarray, k: np.ndarray,
+                    cfg: PanopticConfig) -> tuple[SlotWindow, int]:
+    """ID window width from the busiest training frame (+ margin), frustum length = the image's
+    horizontal footprint at the median depth of the detected things; slots = 1 + 3 x width unless set."""
+    things = np.isin(labels.semantic, cfg.thing_classes)
+    busiest = 1
+    for i in np.flatnonzero(is_train):
+        ids = np.unique(labels.instance[i][things[i]])
+        busiest = max(busiest, int((ids > 0).sum()))
+    d = depths[things & (depths > 0)]
+    if d.size == 0:
+        d = depths[depths > 0]
+    z = float(np.median(d)) if d.size else 1.0
+    w_px = 2 * float(np.median(k[:, 2]))
+    frustum_m = max(w_px / float(np.median(k[:, 0])) * z, 1e-3)
+    width = busiest + cfg.id_window_margin
+    n_slots = cfg.n_slots or 1 + 3 * width
+    if n_slots - 1 < 2 * width:
+        raise ValueError(f"panoptic.n_slots = {n_slots} is too few for the ID window: the busiest training frame "
+                         f"has {busiest} thing segments, so the window is {width} slots wide and needs at least "
+                         f"{2 * width + 1} slots; raise panoptic.n_slots or set it to 0 (automatic)")
+    return SlotWindow.for_scene(busiest, frustum_m, n_slots, margin=cfg.id_window_margin), n_slots
+
+
+def _draw_pixels(sem: np.ndarray, things: np.ndarray, n: int, share: float, rng: np.random.Generator) -> np.ndarray:
+    """Flat pixel indices of one frame: `share` of them on thing pixels, the rest over non-void pixels."""
+    thing_px = np.flatnonzero(things)
+    labelled_px = np.flatnonzero(sem != VOID)
+    n_thing = int(round(n * share)) if thing_px.size else 0
+    picks = []
+    if n_thing:
+        picks.append(thing_px[rng.integers(0, thing_px.size, n_thing)])
+    pool = labelled_px if labelled_px.size else np.arange(sem.size)
+    picks.append(pool[rng.integers(0, pool.size, n - n_thing)])
+    return np.concatenate(picks)
+
+
+def fit_panoptic(model, labels: WindowLabels, is_train: np.ndarray, depths: np.ndarray, cfg: PanopticConfig,
+                 progress: Callable[[int, int, dict], None] | None = None, seed: int = 0) -> PanopticResult:
+    """Train the panoptic part of a fitted window (model = trainer.NerfModel with its final poses)."""
+    t0 = time.perf_counter()
+    dev = model.poses_c2w.device
+    n, h, w = labels.semantic.shape
+    if model.wh != (w, h):
+        raise ValueError(f"labels are {w}x{h} but the model renders {model.wh[0]}x{model.wh[1]}")
+    k_np = model.intrinsics.cpu().numpy()
+    window, n_slots = slot_window_for(labels, is_train, depths, k_np, cfg)
+    pfield = panoptic_field(model, cfg, n_slots).to(dev)
+    params = [{"params": list(pfield.semantic.parameters()) + list(pfield.instance.parameters()), "lr": cfg.lr_mlp}]
+    if pfield.grid is not None:
+        params.append({"params": list(pfield.grid.parameters()), "lr": cfg.lr_grid, "eps": 1e-15})
+    shared = cfg.grid_mode == "shared"
+    if shared:  # one grid for colour and panoptic: the panoptic losses move the colour grid too
+        params.append({"params": [model.field.grid.table], "lr": cfg.lr_grid * 0.1, "eps": 1e-15})
+    opt = torch.optim.Adam(params)
+    sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: 0.1 ** min(1.0, s / max(cfg.steps, 1)))
+    rng = np.random.default_rng(seed)
+    train = np.flatnonzero(is_train)
+    things_all = np.isin(labels.semantic, cfg.thing_classes) & (labels.instance > 0)
+    train = train[[labels.semantic[i].__ne__(VOID).any() for i in train]]
+    result = PanopticResult(pfield, cfg, window if cfg.id_window else None, n_slots, 0, 0.0, param_count(pfield))
+    if len(train) == 0:  # nothing labelled: heads stay untrained, renders say stuff/uniform
+        result.fit_s = time.perf_counter() - t0
+        return result
+    cams = model.poses_c2w[:, :3, 3].detach().cpu().numpy()
+    sem_t = torch.from_numpy(labels.semantic)
+    inst_t = torch.from_numpy(labels.instance)
+    conf_t = torch.from_numpy(labels.confidence)
+    for step in range(cfg.steps):
+        frames = rng.choice(train, size=min(cfg.frames_per_step, len(train)), replace=False)
+        pix = [_draw_pixels(labels.semantic[i], things_all[i], cfg.rays_per_frame, cfg.thing_ray_share, rng)
+               for i in frames]
+        fi = torch.from_numpy(np.repeat(frames, [len(p) for p in pix])).long()
+        flat = torch.from_numpy(np.concatenate(pix)).long()
+        v, u = flat // w, flat % w
+        o, d = pixel_rays(model.intrinsics[fi.to(dev)], model.poses_c2w[fi.to(dev)],
+                          u.float().to(dev) + 0.5, v.float().to(dev) + 0.5)
+        ks = weighted_samples(model, o, d, cfg.min_weight, keep_grad_features=shared)
+        p_sem, p_inst = ray_probs(pfield, ks)
+        sem = sem_t[fi, v, u].to(dev).long()
+        inst = inst_t[fi, v, u].to(dev).long()
+        conf = conf_t[fi, v, u].to(dev)
+        is_thing = torch.zeros_like(sem, dtype=torch.bool)
+        for c in cfg.thing_classes:
+            is_thing |= sem == c
+        is_thing &= inst > 0
+        is_stuff = (sem != VOID) & ~torch.isin(sem, torch.tensor(cfg.thing_classes, device=dev))
+        target = torch.full_like(sem, -1)
+        target[is_stuff] = 0
+        seg_index = torch.full_like(sem, -1)
+        n_seg_total = 0
+        pts = (o + d * ks.depth[:, None]).detach().cpu().numpy()
+        for j, i in enumerate(frames):
+            rows = torch.nonzero((fi == int(i)).to(dev) & is_thing).squeeze(1)
+            if rows.numel() == 0:
+                continue  # a frame without fruit needs no assignment
+            ids, local = torch.unique(inst[rows], return_inverse=True)
+            cost = segment_costs(p_inst[rows].detach(), local, len(ids)).cpu().numpy()
+            allowed = None
+            if cfg.id_window:
+                centres = np.stack([np.median(pts[rows[local == s].cpu().numpy()], axis=0) for s in range(len(ids))])
+                along = along_track(centres, cams)
+                allowed = window.allowed(along)
+                cost = cost + cfg.position_prior * position_preference(window, along)
+            slots = assign(cost, allowed)
+            result.assignments += len(ids)
+            result.overflow_segments += max(0, len(ids) - (n_slots - 1))
+            target[rows] = torch.from_numpy(slots).to(dev)[local]
+            seg_index[rows] = local + n_seg_total
+            n_seg_total += len(ids)
+        l_sem = semantic_loss(p_sem, sem, conf, void=VOID)
+        l_inst = instance_loss(p_inst, torch.where(is_thing, target, torch.full_like(target, -1)))
+        l_stuff = instance_loss(p_inst, torch.where(is_stuff, target, torch.full_like(target, -1)))
+        l_cons = consistency_loss(p_inst, seg_index, n_seg_total)
+        loss = cfg.w_semantic * l_sem + cfg.w_instance * l_inst + cfg.w_stuff * l_stuff + cfg.w_consistency * l_cons
+        if not torch.isfinite(loss):
+            from nerf.trainer import NonFiniteLoss
+            raise NonFiniteLoss(f"non-finite panoptic loss ({float(loss.detach())}) at panoptic step {step}")
+        opt.zero_grad(set_to_none=True)
+        if loss.requires_grad:
+            loss.backward()
+            opt.step()
+        sched.step()
+        if step % 25 == 0 or step == cfg.steps - 1:
+            rec = {"step": step, "loss": float(loss.detach()), "semantic": float(l_sem.detach()),
+                   "instance": float(l_inst.detach()), "stuff": float(l_stuff.detach()),
+                   "consistency": float(l_cons.detach()), "samples_per_ray": len(ks.w) / max(ks.n_rays, 1)}
+            result.history.append(rec)
+            if progress:
+                progress(step + 1, cfg.steps, {"loss": rec["loss"]})
+    result.steps = cfg.steps
+    result.fit_s = time.perf_counter() - t0
+    return result
+
+
+@torch.no_grad()
+def render_panoptic(model, pres: PanopticResult, i: int | None = None, c2w: Tensor | None = None,
+                    k: Tensor | None = None, chunk: int = 8192) -> dict:
+    """Render frame i (or a given pose): rgb [H, W, 3], depth [H, W] (m), opacity, semantic [H, W] uint8,
+    instance [H, W] int32 (window slots, 0 = stuff), after post-processing; samples_per_ray."""
+    w, h = model.wh
+    c2w = model.poses_c2w[i] if c2w is None else c2w
+    k = model.intrinsics[i] if k is None else k
+    dev = c2w.device
+    v, u = torch.meshgrid(torch.arange(h, device=dev) + 0.5, torch.arange(w, device=dev) + 0.5, indexing="ij")
+    u, v = u.reshape(-1), v.reshape(-1)
+    cfg = pres.cfg
+    rgb, depth, opac, p_sem, p_inst = [], [], [], [], []
+    n_eval = 0
+    for s in range(0, u.shape[0], chunk):
+        uu, vv = u[s:s + chunk], v[s:s + chunk]
+        o, d = pixel_rays(k.expand(uu.shape[0], 4), c2w.expand(uu.shape[0], 4, 4), uu, vv)
+        ks = weighted_samples(model, o, d, cfg.min_weight)
+        ps, pi = ray_probs(pres.field, ks)
+        rgb.append(ks.rgb)
+        depth.append(ks.depth)
+        opac.append(ks.opacity)
+        p_sem.append(ps)
+        p_inst.append(pi)
+        n_eval += ks.n_evaluated
+    p_sem_img = torch.cat(p_sem).reshape(h, w, -1).cpu().numpy()
+    p_inst_img = torch.cat(p_inst).reshape(h, w, -1).cpu().numpy()
+    sem, inst = panoptic_labels(p_sem_img, p_inst_img, cfg)
+    return {"rgb": torch.cat(rgb).reshape(h, w, 3), "depth": torch.cat(depth).reshape(h, w),
+            "opacity": torch.cat(opac).reshape(h, w), "semantic": sem, "instance": inst,
+            "samples_per_ray": n_eval / (h * w)}
+
+
+def panoptic_labels(p_sem: np.ndarray, p_inst: np.ndarray, cfg: PanopticConfig) -> tuple[np.ndarray, np.ndarray]:
+    """Per-pixel distributions [H, W, D] / [H, W, N] -> semantic uint8 and instance int32 images.
+
+    Thing pixels take the most likely thing slot (1..N-1); then post-processing: each instance mask
+    gets one 3x3 opening (erosion then dilation), instances smaller than cfg.min_segment_px are dropped,
+    an instance's pixels take its majority thing class, and dropped pixels take their most likely
+    stuff class with instance 0."""
+    things = np.array(cfg.thing_classes)
+    stuff = np.array([c for c in range(p_sem.shape[-1]) if c not in set(cfg.thing_classes)])
+    sem = p_sem.argmax(-1)
+    stuff_sem = stuff[p_sem[..., stuff].argmax(-1)] if stuff.size else np.zeros_like(sem)
+    is_thing = np.isin(sem, things)
+    inst = np.where(is_thing, p_inst[..., 1:].argmax(-1) + 1, 0).astype(np.int32)
+    out_sem = np.where(is_thing, sem, stuff_sem).astype(np.uint8)
+    out_inst = np.zeros_like(inst)
+    kernel = np.ones((3, 3), bool)
+    for sl_id in np.unique(inst[inst > 0]):
+        mask = inst == sl_id
+        opened = ndimage.binary_opening(mask, structure=kernel)
+        if opened.sum() < cfg.min_segment_px:
+            continue
+        classes, counts = np.unique(sem[opened], return_counts=True)
+        thing_counts = [(n_, c) for c, n_ in zip(classes, counts) if c in set(cfg.thing_classes)]
+        out_sem[opened] = max(thing_counts)[1] if thing_counts else out_sem[opened]
+        out_inst[opened] = sl_id
+    dropped = is_thing & (out_inst == 0)
+    out_sem[dropped] = stuff_sem[dropped]
+    return out_sem, out_inst
+
+
+def load_panoptic(state: dict, model, device: str = "cpu") -> PanopticResult:
+    """PanopticResult (field and settings only) from PanopticResult.state()."""
+    cfg = PanopticConfig(**{**state["cfg"], "thing_classes": tuple(state["cfg"]["thing_classes"])})
+    pfield = panoptic_field(model, cfg, state["n_slots"]).to(device)
+    pfield.load_state_dict(state["field"])
+    sw = SlotWindow(**state["slot_window"]) if state.get("slot_window") else None
+    return PanopticResult(pfield, cfg, sw, state["n_slots"], 0, 0.0, param_count(pfield))
+
