@@ -219,7 +219,10 @@ def _rays_for(model: NerfModel, poses: PoseCorrection, c2w0: Tensor, k: Tensor, 
 
 
 def fit_window(data: WindowData, cfg: NerfConfig, device: str = "cpu",
-               progress: Callable[[int, int, dict], None] | None = None) -> FitResult:
+               progress: Callable[[int, int, dict], None] | None = None, render_val: bool = True) -> FitResult:
+    """Fit the window; with render_val (default) also render every validation frame (FitResult.renders,
+    val_psnr, samples_per_ray, render_s_per_image). Without it those stay empty/NaN for the caller to fill
+    with `validate()` after a later phase (the panoptic one renders colour and panoptic in one pass)."""
     torch.manual_seed(cfg.seed)
     g = torch.Generator(device="cpu").manual_seed(cfg.seed)
     dev = torch.device(device)
@@ -310,18 +313,28 @@ def fit_window(data: WindowData, cfg: NerfConfig, device: str = "cpu",
     with torch.no_grad():
         final = poses.apply(c2w0, torch.arange(n, device=dev)) if cfg.refine_poses else c2w0
     model.poses_c2w = final.detach().clone()
-    val_psnr, spr, render_s, renders = {}, [], [], {}
-    for i in val_idx.tolist():
-        t1 = time.perf_counter()
-        out = model.render_image(i)
-        render_s.append(time.perf_counter() - t1)
-        renders[i] = out
-        spr.append(out["samples_per_ray"])
-        val_psnr[int(data.frame_ids[i])] = psnr(out["rgb"], images[i].float() / 255.0)
     train_psnr = float(np.mean([h_["psnr"] for h_ in history[-3:]]))
-    return FitResult(model, final.cpu().numpy().astype(np.float64), cfg.steps, fit_s, val_psnr, train_psnr,
-                     float(np.mean(spr)) if spr else float("nan"), float(np.median(render_s)) if render_s else float("nan"),
-                     param_count(fld), history, renders)
+    res = FitResult(model, final.cpu().numpy().astype(np.float64), cfg.steps, fit_s, {}, train_psnr,
+                    float("nan"), float("nan"), param_count(fld), history, {})
+    if render_val:
+        validate(res, data, model.render_image)
+    return res
+
+
+def validate(res: FitResult, data: WindowData, render: Callable[[int], dict]) -> None:
+    """Render every validation frame with `render(i)` (a dict with at least rgb [H, W, 3] and
+    samples_per_ray) and fill res.renders, val_psnr, samples_per_ray and render_s_per_image."""
+    spr, render_s = [], []
+    for i in np.flatnonzero(~data.is_train).tolist():
+        t1 = time.perf_counter()
+        out = render(i)
+        render_s.append(time.perf_counter() - t1)
+        res.renders[i] = out
+        spr.append(out["samples_per_ray"])
+        target = torch.from_numpy(data.images[i]).to(out["rgb"].device).float() / 255.0
+        res.val_psnr[int(data.frame_ids[i])] = psnr(out["rgb"], target)
+    res.samples_per_ray = float(np.mean(spr)) if spr else float("nan")
+    res.render_s_per_image = float(np.median(render_s)) if render_s else float("nan")
 
 
 @torch.no_grad()

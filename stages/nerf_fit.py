@@ -151,14 +151,14 @@ def fit_one(payload: dict) -> dict:
     """Runs in a Dask worker: fit, save checkpoint and renders, return table rows."""
     import torch
 
-    from nerf.trainer import fit_window
+    from nerf.trainer import fit_window, validate
 
     wid, out_dir, data_root = payload["window_id"], Path(payload["out_dir"]), Path(payload["data_root"])
     frames = pd.DataFrame(payload["frames"])
     data = load_window(frames, data_root)
     key = str(wid)
     try:
-        res = fit_window(data, payload["cfg"], device=payload["device"],
+        res = fit_window(data, payload["cfg"], device=payload["device"], render_val=not payload["panoptic"].enabled,
                          progress=lambda s, n, info: parallel.report(key, s, n, **info))
     except Exception as err:
         raise RuntimeError(f"window {wid}: {err}") from err
@@ -177,12 +177,12 @@ def fit_one(payload: dict) -> dict:
         except Exception as err:
             raise RuntimeError(f"window {wid} (panoptic phase): {err}") from err
         state["panoptic"] = pan.state()
+        validate(res, data, lambda i: render_panoptic(res.model, pan, i))
     torch.save(state, wdir / "checkpoint.pt")
     for i in np.flatnonzero(~data.is_train):
         out = res.renders[int(i)]
         fid = int(data.frame_ids[i])
         if pan is not None:
-            out = render_panoptic(res.model, pan, int(i))
             write_png(wdir / "renders" / f"semantic_{fid:06d}.png", out["semantic"].astype(np.uint8))
             write_png(wdir / "renders" / f"instance_{fid:06d}.png", out["instance"].astype(np.uint16))
         rgb = (out["rgb"].clamp(0, 1).cpu().numpy() * 255).round().astype(np.uint8)
