@@ -25,6 +25,9 @@ class NerfConfig:
     """coarsest lattice scale, metres."""
     hidden: int = 64
     """width of the decoders' hidden layers."""
+    field_kind: Literal["permuto", "mlp_pe"] = "permuto"
+    """radiance field: 'permuto' (hash grid + small decoders, ours) or 'mlp_pe' (the Semantic-NeRF-like
+    baseline: an MLP on a Fourier encoding of position and direction, nerf/baselines.py)."""
     steps: int = 600
     """optimisation steps (the cpu preset is sized for a few minutes per window on one core)."""
     rays_per_step: int = 1024

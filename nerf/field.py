@@ -45,6 +45,21 @@ class RadianceField(nn.Module):
         self.density_net = mlp(self.grid.out_dim, cfg.hidden, 1, 16)
         self.color_net = mlp(16 + 9, cfg.hidden, 1, 3)
 
+    @property
+    def feature_dim(self) -> int:
+        """Width of the features g_c that forward() returns (what the panoptic heads read)."""
+        return self.grid.out_dim
+
+    def param_groups(self, cfg: NerfConfig) -> list[dict]:
+        """Adam parameter groups: the hash table (eps 1e-15: most rows see no gradient in a step) and the decoders."""
+        return [{"params": [self.grid.table], "lr": cfg.lr_grid, "eps": 1e-15},
+                {"params": list(self.density_net.parameters()) + list(self.color_net.parameters()), "lr": cfg.lr_mlp,
+                 "weight_decay": 1e-6}]
+
+    def feature_parameters(self) -> list[nn.Parameter]:
+        """The parameters behind g_c (a 'shared' panoptic phase trains them too)."""
+        return [self.grid.table]
+
     def grid_features(self, x: Tensor) -> Tensor:
         """g_c(x): colour-grid features [N, L*F] (the panoptic delta grid builds on these)."""
         return self.grid(x)
@@ -60,6 +75,19 @@ class RadianceField(nn.Module):
         sigma = torch.exp(h[:, 0].float().clamp(max=MAX_LOG_DENSITY))
         rgb = torch.sigmoid(self.color_net(torch.cat([h, sh_deg2(d)], -1)))
         return sigma, rgb, g
+
+
+def build_field(cfg: NerfConfig, scene_scale_m: float) -> nn.Module:
+    """The radiance field cfg.field_kind names: 'permuto' (RadianceField, ours) or 'mlp_pe' (the
+    Semantic-NeRF-like baseline of nerf/baselines.py)."""
+    kind = getattr(cfg, "field_kind", "permuto")
+    if kind == "permuto":
+        return RadianceField(cfg, scene_scale_m)
+    if kind == "mlp_pe":
+        from nerf.baselines import MlpPeField
+
+        return MlpPeField(cfg, scene_scale_m)
+    raise ValueError(f"unknown field_kind {kind!r}; field kinds: ['mlp_pe', 'permuto']")
 
 
 def param_count(module: nn.Module) -> int:

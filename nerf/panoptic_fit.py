@@ -55,6 +55,9 @@ class PanopticConfig:
     ('shared', panoptic losses then train it too), or an independent full-size grid."""
     n_slots: int = 0
     """instance slots including slot 0 = stuff (0 = automatic: 1 + 3 x the ID window width)."""
+    instances: bool = True
+    """train and render instances (off = semantic only, the Semantic-NeRF-like baseline: every rendered
+    instance id is 0, so all fruits of one class in a frame form one segment)."""
     id_window: bool = True
     """repeated-ID rejection: restrict each segment to the slot window at its position along the row."""
     id_window_margin: int = 4
@@ -124,7 +127,10 @@ class PanopticResult:
 
 def panoptic_field(model, cfg: PanopticConfig, n_slots: int) -> PanopticField:
     """The panoptic part sized after the colour grid of `model` (trainer.NerfModel)."""
-    mc, enc = model.cfg, model.field.grid
+    mc = model.cfg
+    if hasattr(model.field, "panoptic_field"):  # a field without a hash grid builds its own heads (nerf/baselines.py)
+        return model.field.panoptic_field(cfg, n_slots, mc.hidden)
+    enc = model.field.grid
     cap = mc.log2_capacity_delta if cfg.grid_mode == "delta" else mc.log2_capacity
     return PanopticField(mc.n_levels, mc.n_features, cap, float(enc.scales[0]), float(enc.scales[-1]), cfg.n_classes,
                          n_slots, mode=cfg.grid_mode, hidden=mc.hidden, seed=mc.seed + 1)
@@ -188,7 +194,7 @@ def weighted_samples(model, o: Tensor, d: Tensor, min_weight: float, round_sampl
         active = active[had & (trans[active] > eps)]
         r += 1
     opacity = 1 - trans
-    width = model.field.grid.out_dim
+    width = model.field.feature_dim
     cat = lambda parts, shape: torch.cat(parts) if parts else torch.zeros(shape, device=dev)  # noqa: E731
     ray_index = cat(rs, (0,)).long()
     order = torch.argsort(ray_index, stable=True)
@@ -259,14 +265,15 @@ def fit_panoptic(model, labels: WindowLabels, is_train: np.ndarray, depths: np.n
         params.append({"params": list(pfield.grid.parameters()), "lr": cfg.lr_grid, "eps": 1e-15})
     shared = cfg.grid_mode == "shared"
     if shared:  # one grid for colour and panoptic: the panoptic losses move the colour grid too
-        params.append({"params": [model.field.grid.table], "lr": cfg.lr_grid * 0.1, "eps": 1e-15})
+        params.append({"params": model.field.feature_parameters(), "lr": cfg.lr_grid * 0.1, "eps": 1e-15})
     opt = torch.optim.Adam(params)
     sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: 0.1 ** min(1.0, s / max(cfg.steps, 1)))
     rng = np.random.default_rng(seed)
     train = np.flatnonzero(is_train)
     things_all = np.isin(labels.semantic, cfg.thing_classes) & (labels.instance > 0)
     train = train[[labels.semantic[i].__ne__(VOID).any() for i in train]]
-    result = PanopticResult(pfield, cfg, window if cfg.id_window else None, n_slots, 0, 0.0, param_count(pfield))
+    n_params = param_count(pfield) - (0 if cfg.instances else param_count(pfield.instance))
+    result = PanopticResult(pfield, cfg, window if cfg.id_window and cfg.instances else None, n_slots, 0, 0.0, n_params)
     if len(train) == 0:  # nothing labelled: heads stay untrained, renders say stuff/uniform
         result.fit_s = time.perf_counter() - t0
         return result
@@ -298,7 +305,7 @@ def fit_panoptic(model, labels: WindowLabels, is_train: np.ndarray, depths: np.n
         seg_index = torch.full_like(sem, -1)
         n_seg_total = 0
         pts = (o + d * ks.depth[:, None]).detach().cpu().numpy()
-        for j, i in enumerate(frames):
+        for j, i in enumerate(frames if cfg.instances else []):
             rows = torch.nonzero((fi == int(i)).to(dev) & is_thing).squeeze(1)
             if rows.numel() == 0:
                 continue  # a frame without fruit needs no assignment
@@ -317,9 +324,12 @@ def fit_panoptic(model, labels: WindowLabels, is_train: np.ndarray, depths: np.n
             seg_index[rows] = local + n_seg_total
             n_seg_total += len(ids)
         l_sem = semantic_loss(p_sem, sem, conf, void=VOID)
-        l_inst = instance_loss(p_inst, torch.where(is_thing, target, torch.full_like(target, -1)))
-        l_stuff = instance_loss(p_inst, torch.where(is_stuff, target, torch.full_like(target, -1)))
-        l_cons = consistency_loss(p_inst, seg_index, n_seg_total)
+        if cfg.instances:
+            l_inst = instance_loss(p_inst, torch.where(is_thing, target, torch.full_like(target, -1)))
+            l_stuff = instance_loss(p_inst, torch.where(is_stuff, target, torch.full_like(target, -1)))
+            l_cons = consistency_loss(p_inst, seg_index, n_seg_total)
+        else:
+            l_inst = l_stuff = l_cons = torch.zeros((), device=dev)
         loss = cfg.w_semantic * l_sem + cfg.w_instance * l_inst + cfg.w_stuff * l_stuff + cfg.w_consistency * l_cons
         if not torch.isfinite(loss):
             from nerf.trainer import NonFiniteLoss
@@ -386,6 +396,8 @@ def panoptic_labels(p_sem: np.ndarray, p_inst: np.ndarray, cfg: PanopticConfig) 
     sem = p_sem.argmax(-1)
     stuff_sem = stuff[p_sem[..., stuff].argmax(-1)] if stuff.size else np.zeros_like(sem)
     is_thing = np.isin(sem, things)
+    if not cfg.instances:  # semantic only: thing pixels keep their class, no instance ids
+        return sem.astype(np.uint8), np.zeros(sem.shape, np.int32)
     inst = np.where(is_thing, p_inst[..., 1:].argmax(-1) + 1, 0).astype(np.int32)
     out_sem = np.where(is_thing, sem, stuff_sem).astype(np.uint8)
     out_inst = np.zeros_like(inst)

@@ -16,7 +16,7 @@ import torch
 from torch import Tensor
 
 from nerf.config import NerfConfig
-from nerf.field import RadianceField, param_count
+from nerf.field import RadianceField, build_field, param_count
 from nerf.occupancy import OccupancyGrid
 from nerf.poses import PoseCorrection
 from nerf.render import (Samples, accumulate, candidates, composite_weights, cone_steps, depth_guided, march, pack,
@@ -105,7 +105,7 @@ class NerfModel:
         cfg = NerfConfig(**state["cfg"])
         sc = state["scene"]
         scene = Scene(sc["centre"].to(device), sc["scale_m"], sc["lo"].to(device), sc["hi"].to(device))
-        fld = RadianceField(cfg, scene.scale_m).to(device)
+        fld = build_field(cfg, scene.scale_m).to(device)
         fld.load_state_dict(state["field"])
         return cls(cfg, fld, OccupancyGrid.from_state({k: v.to(device) for k, v in state["grid"].items()}), scene,
                    state["poses_c2w"].to(device), state["intrinsics"].to(device), tuple(state["wh"]),
@@ -233,7 +233,7 @@ def fit_window(data: WindowData, cfg: NerfConfig, device: str = "cpu",
     c2w0 = torch.tensor(data.poses_c2w, dtype=torch.float32, device=dev)
     scene = window_scene(data.poses_c2w, data.intrinsics, (w, h), cfg.far_m)
     scene = Scene(scene.centre.to(dev), scene.scale_m, scene.lo.to(dev), scene.hi.to(dev))
-    fld = RadianceField(cfg, scene.scale_m).to(dev)
+    fld = build_field(cfg, scene.scale_m).to(dev)
     grid = OccupancyGrid(scene.lo, scene.hi, cfg.occupancy_res, dev)
     model = NerfModel(cfg, fld, grid, scene, c2w0.clone(), k, (w, h))
     init_occupancy(model, depths, c2w0, k)
@@ -241,9 +241,7 @@ def fit_window(data: WindowData, cfg: NerfConfig, device: str = "cpu",
     train_idx = torch.from_numpy(np.flatnonzero(data.is_train)).to(dev)
     val_idx = torch.from_numpy(np.flatnonzero(~data.is_train)).to(dev)
     opt = torch.optim.Adam([
-        {"params": [fld.grid.table], "lr": cfg.lr_grid, "eps": 1e-15},
-        {"params": list(fld.density_net.parameters()) + list(fld.color_net.parameters()), "lr": cfg.lr_mlp,
-         "weight_decay": 1e-6},
+        *fld.param_groups(cfg),
         {"params": list(poses.parameters()), "lr": cfg.lr_pose if cfg.refine_poses else 0.0},
     ])
     sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: 0.1 ** min(1.0, s / max(cfg.steps, 1)))
