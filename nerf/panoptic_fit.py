@@ -236,17 +236,24 @@ def slot_window_for(labels: WindowLabels, is_train: np.ndarray, depths: np.ndarr
     return SlotWindow.for_scene(busiest, frustum_m, n_slots, margin=cfg.id_window_margin), n_slots
 
 
-def _draw_pixels(sem: np.ndarray, things: np.ndarray, n: int, share: float, rng: np.random.Generator) -> np.ndarray:
-    """Flat pixel indices of one frame: `share` of them on thing pixels, the rest over non-void pixels."""
+def _draw_pixels(sem: np.ndarray, things: np.ndarray, n: int, share: float,
+                 rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """Flat pixel indices of one frame, `share` of them on thing pixels and the rest over the labelled
+    (non-void) pixels, with each draw's importance weight p/q (p = uniform over labelled pixels, q = the
+    mixture actually sampled; scaled to a maximum of 1), so that the semantic loss sees the classes in
+    their true proportions."""
     thing_px = np.flatnonzero(things)
     labelled_px = np.flatnonzero(sem != VOID)
-    n_thing = int(round(n * share)) if thing_px.size else 0
-    picks = []
-    if n_thing:
-        picks.append(thing_px[rng.integers(0, thing_px.size, n_thing)])
     pool = labelled_px if labelled_px.size else np.arange(sem.size)
+    n_thing = int(round(n * share)) if thing_px.size else 0
+    s = n_thing / n
+    picks = [thing_px[rng.integers(0, thing_px.size, n_thing)]] if n_thing else []
     picks.append(pool[rng.integers(0, pool.size, n - n_thing)])
-    return np.concatenate(picks)
+    px = np.concatenate(picks)
+    on_thing = things.ravel()[px]
+    q = (1 - s) / pool.size + np.where(on_thing, s / max(thing_px.size, 1), 0.0)
+    w = (1.0 / pool.size) / q
+    return px, w / w.max()  # <= 1: the semantic loss takes weights in [0, 1]
 
 
 def fit_panoptic(model, labels: WindowLabels, is_train: np.ndarray, depths: np.ndarray, cfg: PanopticConfig,
@@ -283,10 +290,11 @@ def fit_panoptic(model, labels: WindowLabels, is_train: np.ndarray, depths: np.n
     conf_t = torch.from_numpy(labels.confidence)
     for step in range(cfg.steps):
         frames = rng.choice(train, size=min(cfg.frames_per_step, len(train)), replace=False)
-        pix = [_draw_pixels(labels.semantic[i], things_all[i], cfg.rays_per_frame, cfg.thing_ray_share, rng)
-               for i in frames]
-        fi = torch.from_numpy(np.repeat(frames, [len(p) for p in pix])).long()
-        flat = torch.from_numpy(np.concatenate(pix)).long()
+        draws = [_draw_pixels(labels.semantic[i], things_all[i], cfg.rays_per_frame, cfg.thing_ray_share, rng)
+                 for i in frames]
+        fi = torch.from_numpy(np.repeat(frames, [len(p) for p, _ in draws])).long()
+        flat = torch.from_numpy(np.concatenate([p for p, _ in draws])).long()
+        importance = torch.from_numpy(np.concatenate([q for _, q in draws])).float().to(dev)
         v, u = flat // w, flat % w
         o, d = pixel_rays(model.intrinsics[fi.to(dev)], model.poses_c2w[fi.to(dev)],
                           u.float().to(dev) + 0.5, v.float().to(dev) + 0.5)
@@ -323,7 +331,7 @@ def fit_panoptic(model, labels: WindowLabels, is_train: np.ndarray, depths: np.n
             target[rows] = torch.from_numpy(slots).to(dev)[local]
             seg_index[rows] = local + n_seg_total
             n_seg_total += len(ids)
-        l_sem = semantic_loss(p_sem, sem, conf, void=VOID)
+        l_sem = semantic_loss(p_sem, sem, conf * importance, void=VOID)
         if cfg.instances:
             l_inst = instance_loss(p_inst, torch.where(is_thing, target, torch.full_like(target, -1)))
             l_stuff = instance_loss(p_inst, torch.where(is_stuff, target, torch.full_like(target, -1)))

@@ -120,3 +120,17 @@ def test_panoptic_phase_leaves_the_colour_model_alone(fitted):
     fit_panoptic(model, detector_like(sem, inst), data.is_train, data.depths,
                  PanopticConfig(steps=5, frames_per_step=2, rays_per_frame=64))
     assert all(torch.equal(a, b) for a, b in zip(before, model.field.parameters()))
+
+
+def test_thing_oversampling_is_undone_by_importance_weights():
+    from nerf.panoptic_fit import _draw_pixels
+
+    sem = np.ones((40, 50), np.uint8)
+    things = np.zeros((40, 50), bool)
+    things[:4, :5] = True                        # 1 % of the pixels are fruit
+    sem[things] = 4
+    px, w = _draw_pixels(sem, things, 20000, 0.5, np.random.default_rng(0))
+    on = things.ravel()[px]
+    assert 0.45 < on.mean() < 0.55                # half the rays land on fruit ...
+    assert abs((w * on).sum() / w.sum() - 0.01) < 0.003   # ... but weigh as 1 % of the image
+    assert w.max() == 1.0 and (w > 0).all()
