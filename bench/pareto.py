@@ -1,0 +1,145 @@
+"""Cost against quality over the model knobs (issue 6, item 3): each point fits one window of the row (colour
+phase with online poses, then the panoptic phase) with one setting of levels, log2 table capacity, colour
+steps and rays per step, and is scored on the same validation frames against ground truth. The Pareto
+fronts (least fit time for the quality) of fit time vs PSNR and fit time vs PQ are plotted, with the
+presets (their knobs, at this run's step count where the preset's own is longer) marked. Image scale is
+not a knob here: the windows' images come at one resolution from ingest.
+
+Output `pareto.parquet`, one row per point: point, preset ('cpu', 'S', 'L' or '' for other settings),
+n_levels, log2_capacity, colour_steps, rays_per_step, panoptic_steps, params, fit_min_per_window
+(colour + panoptic, minutes), render_s_per_image (median, colour + panoptic in one pass), psnr (dB), pq,
+miou, id_consistency, front_psnr / front_pq (on the front of fit time vs that metric), val_frames,
+settings; and `pareto.png`.
+
+    pag bench pareto [--seq synth_row] [--window 1] [--quick | --long] [--val-frames N]
+"""
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import torch
+
+from bench._common import write_parquet
+from bench.ablation import ground_truth
+from bench.compare import fit_and_score, subset
+from nerf.config import preset
+from nerf.panoptic_fit import PanopticConfig
+from pipeline.io import read_table
+from stages.nerf_fit import load_labels, load_window
+
+# (name, preset the point starts from, changes); steps are scaled by the run mode
+POINTS: list[tuple[str, str, dict]] = [
+    ("cpu preset", "cpu", {}),
+    ("S preset", "S", {}),
+    ("6 levels, 2^14", "cpu", dict(n_levels=6, log2_capacity=14)),
+    ("cpu, half steps", "cpu", dict(steps_factor=0.5)),
+    ("cpu, 512 rays", "cpu", dict(rays_per_step=512)),
+    ("14 levels, 2^17", "cpu", dict(n_levels=14, log2_capacity=17)),
+    ("cpu, double steps", "cpu", dict(steps_factor=2.0)),
+]
+LONG_POINTS = POINTS + [
+    ("16 levels, 2^18, 2048 rays", "cpu", dict(n_levels=16, log2_capacity=18, rays_per_step=2048)),
+    ("L preset", "L", {}),
+]
+MODES = {"quick": dict(colour_steps=100, panoptic_steps=80, val_frames=3),
+         "default": dict(colour_steps=200, panoptic_steps=150, val_frames=3),
+         "long": dict(colour_steps=600, panoptic_steps=400, val_frames=6)}
+
+
+def pareto_front(cost: np.ndarray, quality: np.ndarray) -> np.ndarray:
+    """Points no other point dominates (cost <= and quality >=, one of them strictly). NaN quality is never
+    on the front. Example: cost (1, 2, 3), quality (10, 9, 12) -> (True, False, True)."""
+    ok = np.isfinite(quality)
+    front = np.zeros(len(cost), bool)
+    for i in np.flatnonzero(ok):
+        dom = ok & (cost <= cost[i]) & (quality >= quality[i]) & ((cost < cost[i]) | (quality > quality[i]))
+        front[i] = not dom.any()
+    return front
+
+
+def run(seq: str = "synth_row", window: int = 1, mode: str = "default", val_frames: int = -1, threads: int = 2,
+        data_root: Path = Path("data"), out_dir: Path = Path("data/bench")) -> pd.DataFrame:
+    torch.set_num_threads(threads)
+    m = dict(MODES[mode])
+    if val_frames >= 0:
+        m["val_frames"] = val_frames
+    settings = f"{mode}: base colour_steps={m['colour_steps']} panoptic_steps={m['panoptic_steps']} val_frames={m['val_frames']}"
+    print(f"pag bench pareto, {settings}", flush=True)
+    interim = data_root / "interim" / seq
+    frames = read_table(interim / "frames.parquet", "frames")
+    windows = read_table(interim / "windows.parquet", "windows")
+    dets = read_table(interim / "detections_filtered.parquet", "detections")
+    gt_segments = read_table(interim / "gt_segments.parquet", "gt_segments")
+    w = windows[windows.window_id == window].merge(frames, on="frame_id")
+    if w.empty:
+        raise ValueError(f"window {window} not in {seq}; windows: {sorted(windows.window_id.unique())}")
+    data, labels = subset(load_window(w, data_root), load_labels(w, dets, data_root), m["val_frames"])
+    wk = w[w.frame_id.isin(set(data.frame_ids.tolist()))].reset_index(drop=True)
+    gts = [ground_truth(wk.iloc[i], gt_segments, data_root) for i in np.flatnonzero(~data.is_train)]
+    pcfg = PanopticConfig(steps=m["panoptic_steps"])
+    rows = []
+    for name, pre, change in (LONG_POINTS if mode == "long" else POINTS):
+        change = dict(change)
+        steps = max(1, int(round(m["colour_steps"] * change.pop("steps_factor", 1.0))))
+        ncfg = preset(pre, steps=steps, seed=window, **change)
+        r = fit_and_score(data, labels, gts, ncfg, pcfg)
+        rows.append({"point": name, "preset": pre if not change and name.endswith("preset") else "",
+                     "n_levels": ncfg.n_levels, "log2_capacity": ncfg.log2_capacity, **r,
+                     "val_frames": int((~data.is_train).sum()), "settings": settings, "seq": seq, "window": window})
+        print(f"{name}: fit {r['fit_min_per_window']:.2f} min, render {r['render_s_per_image']:.1f} s, "
+              f"PSNR {r['psnr']:.2f}, PQ {r['pq']:.3f}", flush=True)
+    df = pd.DataFrame(rows)
+    df["front_psnr"] = pareto_front(df.fit_min_per_window.to_numpy(), df.psnr.to_numpy())
+    df["front_pq"] = pareto_front(df.fit_min_per_window.to_numpy(), df.pq.to_numpy())
+    out_dir.mkdir(parents=True, exist_ok=True)
+    write_parquet(df, out_dir / "pareto.parquet")
+    plot(df, out_dir / "pareto.png")
+    return df
+
+
+def plot(df: pd.DataFrame, path: Path) -> None:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(12, 4.5))
+    for ax, metric, label in ((axes[0], "psnr", "val PSNR (dB)"), (axes[1], "pq", "PQ")):
+        front = df[df[f"front_{metric}"]].sort_values("fit_min_per_window")
+        ax.plot(front.fit_min_per_window, front[metric], "-", color="#c44", lw=1.5, label="Pareto front", zorder=1)
+        ax.scatter(df.fit_min_per_window, df[metric], c="#48c", s=30, zorder=2, label="points")
+        pre = df[df.preset != ""]
+        ax.scatter(pre.fit_min_per_window, pre[metric], marker="*", s=220, c="#fa0", edgecolors="k", zorder=3,
+                   label="presets")
+        for r in df.itertuples(index=False):
+            ax.annotate(f"{r.point}\n{r.render_s_per_image:.1f} s/img", (r.fit_min_per_window, getattr(r, metric)),
+                        fontsize=6.5, xytext=(4, 3), textcoords="offset points")
+        ax.set_xlabel("fit time per window (min, colour + panoptic)")
+        ax.set_ylabel(label)
+        ax.legend(fontsize=7, loc="lower right")
+    fig.suptitle(f"{df.seq.iloc[0]} window {df.window.iloc[0]}, {df.settings.iloc[0]}", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="pag bench pareto", description=__doc__.split("\n")[0])
+    p.add_argument("--seq", default="synth_row")
+    p.add_argument("--window", type=int, default=1)
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--quick", action="store_true", help=f"fewer steps: {MODES['quick']}")
+    g.add_argument("--long", action="store_true", help=f"more steps and points (incl. L): {MODES['long']}")
+    p.add_argument("--val-frames", type=int, default=-1, help="validation frames scored (-1 = the mode's, 0 = all)")
+    p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--data-root", type=Path, default=Path("data"))
+    p.add_argument("--out", type=Path, default=Path("data/bench"))
+    a = p.parse_args(argv)
+    mode = "quick" if a.quick else "long" if a.long else "default"
+    df = run(a.seq, a.window, mode, a.val_frames, a.threads, a.data_root, a.out)
+    cols = ["point", "n_levels", "log2_capacity", "colour_steps", "rays_per_step", "params", "fit_min_per_window",
+            "render_s_per_image", "psnr", "pq", "miou", "front_psnr", "front_pq"]
+    print(df[cols].to_string(index=False, float_format=lambda v: f"{v:.3f}"))
+    return 0

@@ -1,0 +1,29 @@
+import numpy as np
+import pandas as pd
+
+from bench.compare import markdown, summary
+from bench.pareto import pareto_front
+
+
+def test_pareto_front_keeps_only_undominated_points():
+    cost = np.array([1.0, 2.0, 3.0, 3.0, 0.5])
+    quality = np.array([10.0, 9.0, 12.0, 11.0, np.nan])
+    np.testing.assert_array_equal(pareto_front(cost, quality), [True, False, True, False, False])
+
+
+def test_compare_table_means_windows_and_reports_skips():
+    rows = []
+    for wid, psnr in ((0, 20.0), (1, 22.0)):
+        common = dict(window=wid, val_frames=3, threads=2, settings="quick", seq="s")
+        rows.append(dict(method="detector input", poses="-", status="ok", note="", pq=0.8, miou=0.7, **common))
+        rows.append(dict(method="ours cpu", poses="online refinement", status="ok", note="", psnr=psnr, pq=0.6,
+                         miou=0.7, id_consistency=0.5, fit_min_per_window=1.0, render_s_per_image=2.0, params=10,
+                         colour_steps=100, panoptic_steps=50, **common))
+        rows.append(dict(method="ours cpu", poses="COLMAP", status="skipped", note="no colmap_poses", **common))
+    df = pd.DataFrame(rows)
+    s = summary(df).set_index("poses")
+    assert s.loc["online refinement", "psnr"] == 21.0
+    assert s.loc["COLMAP", "status"] == "skipped"
+    md = markdown(df)
+    assert "| ours cpu | online refinement | 21.00 | 60.0% |" in md
+    assert "skipped: no colmap_poses" in md and "colour steps 100" in md
