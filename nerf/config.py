@@ -28,13 +28,14 @@ class NerfConfig:
     field_kind: Literal["permuto", "mlp_pe"] = "permuto"
     """radiance field: 'permuto' (hash grid + small decoders, ours) or 'mlp_pe' (the Semantic-NeRF-like
     baseline: an MLP on a Fourier encoding of position and direction, nerf/baselines.py)."""
-    steps: int = 600
-    """optimisation steps (the cpu preset is sized for a few minutes per window on one core)."""
+    steps: int = 1500
+    """optimisation steps (the cpu preset is sized for about 3 minutes per window on one free core; on the
+    default row val PSNR grows about 2.5 dB from 600 to 1500 steps, 21.4 -> 24.1)."""
     rays_per_step: int = 1024
     """rays per step."""
-    lr_grid: float = 1e-2
+    lr_grid: float = 2e-2
     """Adam learning rate of the hash tables."""
-    lr_mlp: float = 3e-3
+    lr_mlp: float = 1e-2
     """Adam learning rate of the decoders."""
     lr_pose: float = 1e-4
     """Adam learning rate of the pose corrections (normalised scene units; rotation 6D entries)."""
@@ -50,12 +51,16 @@ class NerfConfig:
     """weight of the depth loss (only on rays whose poses are detached, so it never moves poses)."""
     opacity_loss_weight: float = 0.0
     """weight of the opacity loss: 1 - opacity reached by the sensor depth (plus a margin), on the rays with
-    valid depth whose poses are detached; makes surfaces opaque so nothing behind them shows in renders."""
-    train_early_stop: float = 0.0
+    valid depth whose poses are detached; makes surfaces opaque so nothing behind them shows in renders
+    (0.1 measured -0.5 dB on the default row with truncation off: kept off)."""
+    train_early_stop: float = 1e-3
     """training drops samples whose transmittance (from a density pass without gradients) is below this
-    (0 = keep all): the samples hidden behind opaque surfaces cost a forward and a backward pass and teach nothing."""
-    truncate_at_depth: bool = True
-    """training rays stop a margin past the sensor depth (off = march to the far plane like rendering)."""
+    (0 = keep all): the samples hidden behind opaque surfaces cost a forward and a backward pass and teach nothing
+    (default row: 60 -> 48 training samples per ray, same PSNR)."""
+    truncate_at_depth: bool = False
+    """training rays stop a margin past the sensor depth (off = march to the far plane like rendering). On:
+    whatever lies behind a not yet opaque surface is never trained but renders show it; measured on the default
+    row (600 steps) val PSNR 17.4 dB (training frames rendered: 17.4, training batches 22.5) against 21.4 off."""
     near_m: float = 0.15
     """near plane."""
     far_m: float = 3.5
@@ -64,7 +69,9 @@ class NerfConfig:
     """marching step = step_scale * pixel footprint at the sample's depth (cone marching)."""
     train_sampling: Literal["depth", "occupancy"] = "occupancy"
     """training samples: 'depth' = a band around the sensor depth plus free-space samples in front
-    (RGB-D rays), 'occupancy' = cone marching through the occupancy grid like rendering."""
+    (RGB-D rays), 'occupancy' = cone marching through the occupancy grid like rendering. 'depth' measured
+    poorly on the default row (12 samples per ray, 4096 rays: val 14.8 dB; the occupied cells in front of
+    the band stay untrained and renders see them)."""
     surface_samples: int = 8
     """samples in the band around the sensor depth (train_sampling = depth)."""
     free_samples: int = 4

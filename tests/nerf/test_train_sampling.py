@@ -1,0 +1,94 @@
+"""What training samples and what rendering marches: no truncation at the sensor depth, the no-grad
+transmittance pre-pass, progressive render rounds."""
+import sys
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+sys.path.insert(0, str(Path(__file__).parent))
+from scene_fixture import tiny_window  # noqa: E402
+
+from nerf.config import preset  # noqa: E402
+from nerf.render import Samples, composite_weights, transmittance  # noqa: E402
+from nerf.trainer import fit_window, visible_samples  # noqa: E402
+
+FAST = dict(steps=60, rays_per_step=256, occupancy_every=20, val_register_every=40, val_register_steps=2,
+            pose_warmup_steps=40, n_levels=6, log2_capacity=12, refine_poses=False)
+
+
+@pytest.fixture(scope="module")
+def window():
+    return tiny_window()
+
+
+def test_transmittance_matches_the_compositing_weights():
+    g = torch.Generator().manual_seed(1)
+    ray = torch.tensor([0, 0, 0, 2, 2, 3])
+    sigma, delta = torch.rand(6, generator=g) * 5, torch.rand(6, generator=g)
+    t = transmittance(sigma, delta, ray, 4)
+    w, _ = composite_weights(sigma, delta, ray, 4)
+    assert torch.allclose(t * (1 - torch.exp(-sigma * delta)), w, atol=1e-6)
+    assert t[0] == 1 and t[3] == 1 and t[5] == 1                       # first sample of each ray
+    assert torch.allclose(transmittance(torch.tensor([1.0, 2.0]), torch.tensor([0.5, 0.5]), torch.tensor([0, 0]), 1),
+                          torch.tensor([1.0, 0.6065]), atol=1e-4)
+
+
+def test_visible_samples_drop_what_hides_behind_an_opaque_sample(window):
+    class Wall:
+        """Density 1e4 beyond z = 1 (in normalised units), 0 before."""
+        field = type("F", (), {"density": staticmethod(lambda x: torch.where(x[:, 2] > 1.0, 1e4, 0.0))})()
+        scene = type("S", (), {"normalise": staticmethod(lambda x: x)})()
+
+    t = torch.linspace(0.05, 2.0, 40)
+    s = Samples(torch.zeros(40, dtype=torch.long), t, torch.full((40,), 0.05), 1)
+    kept = visible_samples(Wall(), torch.zeros(1, 3), torch.tensor([[0.0, 0.0, 1.0]]), s, 1e-3)
+    assert kept.t_mid.max() > 1.0                       # the first sample inside the wall stays
+    assert int((kept.t_mid > 1.0).sum()) == 1 and int((kept.t_mid <= 1.0).sum()) == int((t <= 1.0).sum())
+
+
+def test_training_without_truncation_trains_behind_the_sensor_depth(window, monkeypatch):
+    """Truncating training rays at the sensor depth leaves what lies behind half-transparent surfaces
+    untrained, while a render marches on and shows it (on the default row: training frames rendered at
+    17.4 dB against 22.5 dB on the training batches; without truncation both 21.3). Without truncation
+    the training samples reach past the sensor depth, and validation renders are no worse."""
+    import nerf.trainer as trainer
+
+    reach = {}
+    real = trainer.NerfModel.shade
+
+    def spy(self, o, d, s):
+        if torch.is_grad_enabled():
+            reach[self.cfg.truncate_at_depth] = max(reach.get(self.cfg.truncate_at_depth, 0.0), float(s.t_mid.max()))
+        return real(self, o, d, s)
+
+    monkeypatch.setattr(trainer.NerfModel, "shade", spy)
+    cfg = preset("cpu", **FAST)
+    cut = fit_window(window, replace(cfg, truncate_at_depth=True))
+    full = fit_window(window, replace(cfg, truncate_at_depth=False))
+    deepest = float(window.depths.max()) * 1.05 + 0.05
+    assert reach[True] <= deepest < reach[False]
+    val = lambda r: float(np.mean(list(r.val_psnr.values())))  # noqa: E731
+    assert val(full) >= val(cut) - 0.3
+
+
+def test_progressive_render_rounds_match_one_big_round(window):
+    res = fit_window(window, preset("cpu", **{**FAST, "steps": 30}))
+    m = res.model
+    k, c2w = m.intrinsics[0], m.poses_c2w[0]
+    from nerf.render import pixel_rays
+    u = torch.arange(0, 40, 3).float() + 0.5
+    v = torch.full_like(u, 12.5)
+    o, d = pixel_rays(k.expand(len(u), 4), c2w.expand(len(u), 4, 4), u, v)
+    a = m.render_rays(o, d)
+    # reference: every occupied sample at once, no early termination
+    from nerf.render import accumulate, march
+    sm = march(o, d, m.edges(o.device), m.occupied_fn(), jitter=False)
+    with torch.no_grad():
+        sigma, col, _, _ = m.shade(o, d, sm)
+    w, left = composite_weights(sigma, sm.delta, sm.ray_index, sm.n_rays)
+    ref = accumulate(col, w, sm.ray_index, sm.n_rays)
+    assert torch.allclose(a["rgb"], ref, atol=3e-3) and torch.allclose(a["opacity"], 1 - left, atol=3e-3)
+    assert float(a["samples_per_ray"]) <= len(sm) / len(u)
