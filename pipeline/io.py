@@ -77,7 +77,24 @@ def swap_dir(staging: Path, final: Path) -> None:
         shutil.rmtree(old)
 
 
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
 def staging_dir(final: Path) -> Path:
+    """A fresh folder beside `final` to build it in (swap_dir moves it into place). Staging folders that
+    killed runs left behind (their process is gone) are removed."""
+    if final.parent.is_dir():
+        for old in final.parent.glob(f".{final.name}.staging-*"):
+            pid = old.name.rsplit("-", 1)[-1]
+            if pid.isdigit() and int(pid) != os.getpid() and not _pid_alive(int(pid)):
+                shutil.rmtree(old, ignore_errors=True)
     path = final.with_name(f".{final.name}.staging-{os.getpid()}")
     if path.exists():
         shutil.rmtree(path)
