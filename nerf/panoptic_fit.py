@@ -365,11 +365,7 @@ def render_panoptic(model, pres: PanopticResult, i: int | None = None, c2w: Tens
     """Render frame i (or a given pose): rgb [H, W, 3], depth [H, W] (m), opacity, semantic [H, W] uint8,
     instance [H, W] int32 (window slots, 0 = stuff), after post-processing; samples_per_ray."""
     w, h = model.wh
-    c2w = model.poses_c2w[i] if c2w is None else c2w
-    k = model.intrinsics[i] if k is None else k
-    dev = c2w.device
-    v, u = torch.meshgrid(torch.arange(h, device=dev) + 0.5, torch.arange(w, device=dev) + 0.5, indexing="ij")
-    u, v = u.reshape(-1), v.reshape(-1)
+    c2w, k, u, v = model.image_pixels(i, c2w, k)
     cfg = pres.cfg
     rgb, depth, opac, p_sem, p_inst = [], [], [], [], []
     n_eval = 0

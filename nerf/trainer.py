@@ -163,15 +163,21 @@ class NerfModel:
         return {"rgb": rgb, "depth": depth / opacity.clamp_min(1e-6), "opacity": opacity,
                 "samples_per_ray": torch.tensor(n_samples / max(n, 1))}
 
-    @torch.no_grad()
-    def render_image(self, i: int | None = None, c2w: Tensor | None = None, k: Tensor | None = None) -> dict[str, Tensor]:
-        """Full image of frame i (or of a given pose/intrinsics): rgb [H, W, 3], depth [H, W], opacity."""
+    def image_pixels(self, i: int | None = None, c2w: Tensor | None = None,
+                     k: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """Pose and intrinsics of frame i (or the given ones) and the pixel centres u, v [H*W] of a full image."""
         w, h = self.wh
         c2w = self.poses_c2w[i] if c2w is None else c2w
         k = self.intrinsics[i] if k is None else k
         dev = c2w.device
         v, u = torch.meshgrid(torch.arange(h, device=dev) + 0.5, torch.arange(w, device=dev) + 0.5, indexing="ij")
-        u, v = u.reshape(-1), v.reshape(-1)
+        return c2w, k, u.reshape(-1), v.reshape(-1)
+
+    @torch.no_grad()
+    def render_image(self, i: int | None = None, c2w: Tensor | None = None, k: Tensor | None = None) -> dict[str, Tensor]:
+        """Full image of frame i (or of a given pose/intrinsics): rgb [H, W, 3], depth [H, W], opacity."""
+        w, h = self.wh
+        c2w, k, u, v = self.image_pixels(i, c2w, k)
         outs = {"rgb": [], "depth": [], "opacity": []}
         total = 0.0
         for s in range(0, u.shape[0], self.cfg.chunk_rays):
