@@ -27,11 +27,12 @@ from bench._common import write_parquet
 from nerf.config import preset
 from nerf.field import param_count
 from nerf.panoptic_fit import PanopticConfig, fit_panoptic, render_panoptic
-from nerf.panoptic_metrics import ConfusionAccumulator, PanopticAccumulator, dominant_ids, id_consistency
 from nerf.trainer import fit_window, psnr
-from pipeline.classes import N_CLASSES, THING_IDS, VOID
+from pipeline.classes import VOID
 from pipeline.images import read_label
 from pipeline.io import read_table
+from stages.evaluate import Config as EvalConfig
+from stages.evaluate import PanopticScore
 from stages.nerf_fit import load_labels, load_window
 
 VARIANTS: dict[str, dict] = {
@@ -55,16 +56,13 @@ def ground_truth(row: pd.Series, gt_segments: pd.DataFrame, data_root: Path) -> 
 
 
 def score(preds: list[tuple[np.ndarray, np.ndarray]], gts: list[tuple[np.ndarray, np.ndarray]]) -> dict[str, float]:
-    stuff = {c for c in range(N_CLASSES) if c not in THING_IDS}
-    acc, conf, per_frame = PanopticAccumulator(set(THING_IDS), stuff), ConfusionAccumulator(N_CLASSES), []
-    for (ps, pi), (gs, gi) in zip(preds, gts):
-        acc.update(ps, pi, gs, gi)
-        conf.update(ps, gs)
-        per_frame.append(dominant_ids(gi, pi, [f for f in np.unique(gi) if f > 0]))
-    out = acc.compute()
-    ids, n = id_consistency(per_frame)
-    return {"pq": out["pq"], "sq": out["sq"], "rq": out["rq"], "pq_things": out["pq_things"],
-            "pq_stuff": out["pq_stuff"], "miou": conf.miou(), "id_consistency": ids, "fruits_scored": n}
+    """PQ, mIoU and ID consistency of a window's rendered frames, scored as the evaluate stage does."""
+    ps = PanopticScore(EvalConfig().min_visible_px)
+    for (p_sem, p_inst), (g_sem, g_inst) in zip(preds, gts):
+        ps.update(p_sem, p_inst, g_sem, g_inst, np.unique(g_inst[g_inst > 0]))
+    m = ps.metrics(EvalConfig().min_frames_id)
+    return {k: m[k] for k in ("pq", "sq", "rq", "pq_things", "pq_stuff", "miou", "id_consistency")} | {
+        "fruits_scored": int(m["id_consistency_n_fruits"])}
 
 
 def run(seq: str = "synth_row", window: int = 1, colour_steps: int = 0, panoptic_steps: int = 0, threads: int = 2,

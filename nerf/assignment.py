@@ -116,3 +116,55 @@ def along_track(points: np.ndarray, cam_positions: np.ndarray) -> np.ndarray:
     if axis @ (cams[-1] - cams[0]) < 0:
         axis = -axis
     return (np.asarray(points, np.float64) - cams[0]) @ axis
+
+
+class SlotMemory:
+    """Where each instance slot's fruit is: the 3D centre of the segments assigned to the slot so far.
+
+    A fruit does not move between frames, so the segment of the same fruit in another frame should take
+    the same slot. `cost` turns that into an assignment term in [0, 1]: the distance from a segment's
+    centre to each slot's remembered centre in units of the segment's size (0 = same place, 1 = one
+    segment size or more away, i.e. another fruit), and `UNSEEN` for slots no segment took yet, so a fruit
+    seen for the first time prefers a free slot to another fruit's. Centres are running means that turn
+    into an exponential average (rate `min_rate`), so early, poorly placed segments are forgotten.
+    """
+
+    UNSEEN = 0.5
+
+    def __init__(self, n_slots: int, min_rate: float = 0.05):
+        self.centre = np.zeros((n_slots, 3))
+        self.count = np.zeros(n_slots, np.int64)
+        self.min_rate = min_rate
+
+    def cost(self, centres: np.ndarray, sizes: np.ndarray) -> np.ndarray:
+        """centres [S, 3] (m), sizes [S] (m, > 0) -> [S, n_slots] in [0, 1]; column 0 (stuff) is 1."""
+        d = np.linalg.norm(np.asarray(centres, np.float64)[:, None] - self.centre[None], axis=2)
+        c = np.clip(d / np.maximum(np.asarray(sizes, np.float64), 1e-6)[:, None], 0.0, 1.0)
+        c[:, self.count == 0] = self.UNSEEN
+        c[:, 0] = 1.0
+        return c
+
+    def update(self, slots: np.ndarray, centres: np.ndarray) -> None:
+        """Move the centres of `slots` [S] towards the segments' `centres` [S, 3] they were given."""
+        for m, x in zip(np.asarray(slots, np.int64), np.asarray(centres, np.float64)):
+            if not np.isfinite(x).all():
+                continue
+            self.count[m] += 1
+            rate = max(1.0 / self.count[m], self.min_rate)
+            self.centre[m] += rate * (x - self.centre[m])
+
+
+def segment_geometry(points: np.ndarray, seg: np.ndarray, n_segments: int) -> tuple[np.ndarray, np.ndarray]:
+    """Robust 3D centre (per-axis median) and size (2 x median distance to the centre, >= 1 mm) of each
+    segment's points [R, 3]; seg [R] in 0..n_segments-1."""
+    centres = np.zeros((n_segments, 3))
+    sizes = np.full(n_segments, 1e-3)
+    for s in range(n_segments):
+        p = points[seg == s]
+        p = p[np.isfinite(p).all(1)]
+        if len(p) == 0:
+            centres[s] = np.nan
+            continue
+        centres[s] = np.median(p, axis=0)
+        sizes[s] = max(2.0 * float(np.median(np.linalg.norm(p - centres[s], axis=1))), 1e-3)
+    return centres, sizes

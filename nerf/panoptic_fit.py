@@ -29,7 +29,7 @@ import torch
 from scipy import ndimage
 from torch import Tensor
 
-from nerf.assignment import SlotWindow, along_track, assign, position_preference, segment_costs
+from nerf.assignment import SlotMemory, SlotWindow, along_track, assign, position_preference, segment_costs, segment_geometry
 from nerf.field import param_count
 from nerf.panoptic import PanopticField, integrate_probs
 from nerf.panoptic_losses import consistency_loss, instance_loss, semantic_loss
@@ -65,8 +65,17 @@ class PanopticConfig:
     position_prior: float = 0.05
     """with the ID window: weight of the slot preference from the segment's position along the row, which
     breaks the untrained head's ties alike in every frame (costs lie in [-1, 0])."""
+    memory_prior: float = 0.3
+    """weight of the slot-memory term of the assignment cost (nerf/assignment.SlotMemory): a segment prefers
+    the slot whose earlier segments lay at its 3D position (the same fruit seen from another frame) and
+    avoids slots of fruits elsewhere. 0 = off (plain assignment on the predicted probabilities)."""
     w_semantic: float = 1.0
     """weight of the confidence-weighted semantic cross entropy."""
+    stuff_confidence: float = 0.5
+    """confidence of a stuff label (a pixel no detection covers) in the semantic loss; detections carry their
+    score. Below 1 because the absence of a detection is weaker evidence than a detection: a detector misses
+    a real fruit in many frames (partly hidden or cut by the image border), while its false positives do not
+    recur at one 3D place, so the multi-view vote still rejects them. 1 = trust stuff labels fully."""
     w_instance: float = 1.0
     """weight of the instance loss on thing rays (targets from the assignment)."""
     w_stuff: float = 1.0
@@ -85,6 +94,10 @@ class PanopticConfig:
     """semantic classes (pipeline/classes.py)."""
     thing_classes: tuple[int, ...] = (2, 3, 4)
     """semantic classes that are things (have instances)."""
+
+    def __post_init__(self) -> None:
+        if not 0.0 <= self.stuff_confidence <= 1.0:
+            raise ValueError(f"panoptic.stuff_confidence must lie in [0, 1], got {self.stuff_confidence}")
 
 
 @dataclass
@@ -285,6 +298,7 @@ def fit_panoptic(model, labels: WindowLabels, is_train: np.ndarray, depths: np.n
         result.fit_s = time.perf_counter() - t0
         return result
     cams = model.poses_c2w[:, :3, 3].detach().cpu().numpy()
+    memory = SlotMemory(n_slots)
     sem_t = torch.from_numpy(labels.semantic)
     inst_t = torch.from_numpy(labels.instance)
     conf_t = torch.from_numpy(labels.confidence)
@@ -319,18 +333,22 @@ def fit_panoptic(model, labels: WindowLabels, is_train: np.ndarray, depths: np.n
                 continue  # a frame without fruit needs no assignment
             ids, local = torch.unique(inst[rows], return_inverse=True)
             cost = segment_costs(p_inst[rows].detach(), local, len(ids)).cpu().numpy()
+            centres, sizes = segment_geometry(pts[rows.cpu().numpy()], local.cpu().numpy(), len(ids))
             allowed = None
             if cfg.id_window:
-                centres = np.stack([np.median(pts[rows[local == s].cpu().numpy()], axis=0) for s in range(len(ids))])
-                along = along_track(centres, cams)
+                along = along_track(np.nan_to_num(centres), cams)
                 allowed = window.allowed(along)
                 cost = cost + cfg.position_prior * position_preference(window, along)
+            if cfg.memory_prior > 0:
+                cost = cost + cfg.memory_prior * memory.cost(np.nan_to_num(centres, nan=np.inf), sizes)
             slots = assign(cost, allowed)
+            memory.update(slots, centres)
             result.assignments += len(ids)
             result.overflow_segments += max(0, len(ids) - (n_slots - 1))
             target[rows] = torch.from_numpy(slots).to(dev)[local]
             seg_index[rows] = local + n_seg_total
             n_seg_total += len(ids)
+        conf = torch.where(is_stuff, conf * cfg.stuff_confidence, conf)
         l_sem = semantic_loss(p_sem, sem, conf * importance, void=VOID)
         if cfg.instances:
             l_inst = instance_loss(p_inst, torch.where(is_thing, target, torch.full_like(target, -1)))
@@ -392,7 +410,8 @@ def panoptic_labels(p_sem: np.ndarray, p_inst: np.ndarray, cfg: PanopticConfig) 
     """Per-pixel distributions [H, W, D] / [H, W, N] -> semantic uint8 and instance int32 images.
 
     Thing pixels take the most likely thing slot (1..N-1); then post-processing: each instance mask
-    gets one 3x3 opening (erosion then dilation), instances smaller than cfg.min_segment_px are dropped,
+    gets one 3x3 opening (erosion then dilation; the image border does not erode, so a fruit cut by it
+    keeps its thin visible strip), instances smaller than cfg.min_segment_px are dropped,
     an instance's pixels take its majority thing class, and dropped pixels take their most likely
     stuff class with instance 0."""
     things = np.array(cfg.thing_classes)
@@ -408,7 +427,7 @@ def panoptic_labels(p_sem: np.ndarray, p_inst: np.ndarray, cfg: PanopticConfig) 
     kernel = np.ones((3, 3), bool)
     for sl_id in np.unique(inst[inst > 0]):
         mask = inst == sl_id
-        opened = ndimage.binary_opening(mask, structure=kernel)
+        opened = ndimage.binary_dilation(ndimage.binary_erosion(mask, kernel, border_value=1), kernel) & mask
         if opened.sum() < cfg.min_segment_px:
             continue
         classes, counts = np.unique(sem[opened], return_counts=True)

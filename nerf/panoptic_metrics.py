@@ -139,13 +139,14 @@ class ConfusionAccumulator:
 
 
 def dominant_ids(gt_inst: np.ndarray, pred_inst: np.ndarray, fruit_ids: Iterable[int],
-                 min_share: float = 0.5) -> dict[int, int]:
-    """For each ground-truth fruit id: the predicted instance id covering more than `min_share` of its
-    pixels (0 if none does, i.e. the fruit is split, missed or labelled stuff)."""
+                 min_share: float = 0.5, min_px: int = 1) -> dict[int, int]:
+    """For each ground-truth fruit id showing at least `min_px` pixels: the predicted instance id covering
+    more than `min_share` of its pixels (0 if none does, i.e. the fruit is split, missed or labelled stuff).
+    Fruits with fewer pixels count as not visible in this frame."""
     out = {}
     for f in fruit_ids:
         px = pred_inst[gt_inst == f]
-        if px.size == 0:
+        if px.size < max(min_px, 1):
             continue
         ids, n = np.unique(px, return_counts=True)
         j = int(np.argmax(n))

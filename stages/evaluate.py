@@ -33,6 +33,10 @@ class Config:
     """a predicted fruit matches a ground-truth fruit (Hungarian on centre distance) only within this distance."""
     min_frames_id: int = 3
     """fruits seen in at least this many frames are scored for ID consistency."""
+    min_visible_px: int = 12
+    """ID consistency: a ground-truth fruit counts as visible in a frame with at least this many pixels (the
+    panoptic post-processing removes rendered segments below panoptic.min_segment_px = 12, and the detector
+    drops segments that small, so a fruit showing fewer pixels cannot carry an id)."""
     min_gt_px: int = 4
     """a ground-truth near-row fruit counts as seen (count_gt) with at least this many pixels, kept by the
     depth filter, over the fused frames (panoptic_fusion drops slots smaller than its min_slot_px)."""
@@ -40,8 +44,8 @@ class Config:
     def __post_init__(self) -> None:
         if not self.match_max_distance_m > 0:
             raise ValueError(f"evaluate.match_max_distance_m must be > 0, got {self.match_max_distance_m}")
-        if self.min_frames_id < 1 or self.min_gt_px < 1:
-            raise ValueError("evaluate.min_frames_id and evaluate.min_gt_px must be >= 1")
+        if self.min_frames_id < 1 or self.min_gt_px < 1 or self.min_visible_px < 1:
+            raise ValueError("evaluate.min_frames_id, evaluate.min_gt_px and evaluate.min_visible_px must be >= 1")
 
 
 def void_far(sem: np.ndarray, inst: np.ndarray, far_ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -61,7 +65,8 @@ def thing_instances(sem: np.ndarray, inst: np.ndarray) -> np.ndarray:
 class PanopticScore:
     """PQ / SQ / RQ, mIoU and fruit-ID consistency of one set of (pred, gt) panoptic images."""
 
-    def __init__(self) -> None:
+    def __init__(self, min_visible_px: int = 1) -> None:
+        self.min_visible_px = min_visible_px
         self.pq = PanopticAccumulator(things=set(THING_IDS), stuff=set(STUFF_IDS))
         self.conf = ConfusionAccumulator(N_CLASSES)
         self.ids: list[dict[int, int]] = []
@@ -71,7 +76,7 @@ class PanopticScore:
                fruit_ids: np.ndarray) -> None:
         self.pq.update(p_sem, p_inst, g_sem, g_inst)
         self.conf.update(p_sem, g_sem)
-        self.ids.append(dominant_ids(g_inst, thing_instances(p_sem, p_inst), fruit_ids))
+        self.ids.append(dominant_ids(g_inst, thing_instances(p_sem, p_inst), fruit_ids, min_px=self.min_visible_px))
         self.n += 1
 
     def metrics(self, min_frames: int, suffix: str = "") -> dict[str, float]:
@@ -131,7 +136,7 @@ def window_scores(inputs: dict, gt: GroundTruth, gt_poses: pd.DataFrame | None, 
             ctx.count("windows_failed_not_scored")
             continue
         out: dict[str, float] = {"psnr": float(m.val_psnr)}
-        nerf, det = PanopticScore(), PanopticScore()
+        nerf, det = PanopticScore(cfg.min_visible_px), PanopticScore(cfg.min_visible_px)
         val = windows[(windows.window_id == wid) & (windows.split == "val")].frame_id.astype(int)
         for fid in val:
             if not gt.has(fid):
@@ -175,7 +180,7 @@ def row_scores(inputs: dict, gt: GroundTruth, gt_fruits: pd.DataFrame | None, cf
                ctx: StageContext) -> list[tuple[str, str, float]]:
     pf: pd.DataFrame = inputs["panoptic_frames"]
     out: dict[str, float] = {}
-    fused = PanopticScore()
+    fused = PanopticScore(cfg.min_visible_px)
     for r in ctx.progress(pf.itertuples(index=False), "fused frames", total=len(pf)):
         fid = int(r.frame_id)
         if not gt.has(fid):

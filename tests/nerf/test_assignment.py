@@ -73,3 +73,24 @@ def test_position_preference_makes_untrained_assignments_agree_between_frames():
     assert len(set(slots[0])) == 3 and 0 not in slots[0]
     pref = position_preference(win, along_a)
     assert pref.shape == (3, 33) and (pref[:, 0] == 1).all() and (pref >= 0).all() and (pref <= 1).all()
+
+
+def test_slot_memory_gives_a_fruit_its_slot_again_and_new_fruits_free_slots():
+    from nerf.assignment import SlotMemory, segment_geometry
+
+    mem = SlotMemory(6)
+    a, b = np.array([0.0, 0.0, 0.7]), np.array([0.0, 0.08, 0.7])   # two fruits stacked 8 cm apart
+    mem.update(np.array([2, 4]), np.stack([a, b]))
+    # the same two fruits in another frame, listed the other way round, with equal (untrained) probabilities
+    cost = -np.full((2, 6), 1 / 6) + 0.3 * mem.cost(np.stack([b + 0.005, a - 0.005]), np.array([0.05, 0.05]))
+    assert assign(cost).tolist() == [4, 2]
+    # a fruit 30 cm away is another fruit: it prefers a slot nobody took over both remembered ones
+    c = mem.cost(np.array([[0.3, 0.0, 0.7]]), np.array([0.05]))
+    assert c[0, 2] == c[0, 4] == 1.0 and c[0, 1] == SlotMemory.UNSEEN and c[0, 0] == 1.0
+    assert assign(-np.full((1, 6), 1 / 6) + 0.3 * c)[0] not in (2, 4)
+    # a non-finite centre does not move the memory
+    mem.update(np.array([2]), np.array([[np.nan, 0.0, 0.0]]))
+    assert np.allclose(mem.centre[2], a)
+    pts = np.array([[0, 0, 1], [0.02, 0, 1], [-0.02, 0, 1], [5, 5, 5], [1, 1, 1.0]])
+    centres, sizes = segment_geometry(pts, np.array([0, 0, 0, 0, 1]), 2)
+    assert np.allclose(centres[0], [0.01, 0, 1]) and sizes[0] > 0 and sizes[1] == pytest.approx(1e-3)

@@ -108,6 +108,26 @@ def test_post_processing_opens_masks_drops_specks_and_unifies_the_class():
     assert (inst[sem < 2] == 0).all()
 
 
+def test_fruit_cut_by_the_image_border_keeps_its_thin_strip():
+    h, w, cfg = 20, 12, PanopticConfig(min_segment_px=12)
+    p_sem = np.zeros((h, w, 5))
+    p_sem[..., 1] = 1.0
+    p_sem[4:16, :2, 1], p_sem[4:16, :2, 2] = 0.0, 1.0   # a 2-pixel-wide strip of fruit at the left border
+    p_sem[4:16, 6:8, 1], p_sem[4:16, 6:8, 2] = 0.0, 1.0  # the same strip inside the image: opened away
+    p_inst = np.zeros((h, w, 4))
+    p_inst[..., 0] = 1.0
+    p_inst[4:16, :2, 0], p_inst[4:16, :2, 1] = 0.0, 1.0
+    p_inst[4:16, 6:8, 0], p_inst[4:16, 6:8, 2] = 0.0, 1.0
+    sem, inst = panoptic_labels(p_sem, p_inst, cfg)
+    assert (inst[4:16, :2] == 1).all() and (sem[4:16, :2] == 2).all()
+    assert (inst[:, 2:] != 1).all() and (inst == 2).sum() == 0
+
+
+def test_stuff_confidence_outside_0_1_is_a_clear_error():
+    with pytest.raises(ValueError, match="stuff_confidence"):
+        PanopticConfig(stuff_confidence=1.5)
+
+
 def test_too_few_slots_is_a_clear_error(fitted):
     data, sem, inst, model = fitted
     with pytest.raises(ValueError, match="n_slots"):

@@ -107,3 +107,10 @@ def test_id_consistency_requires_one_unique_id_per_fruit():
     share, n = id_consistency(frames[:2], min_frames=2)
     assert share == 1.0
     assert id_consistency(frames[:2], min_frames=3) == (pytest.approx(float("nan"), nan_ok=True), 0)
+
+
+def test_fruits_below_the_visible_size_are_not_scored_in_that_frame():
+    gt = np.array([[1, 1, 1, 2, 0]])
+    pred = np.array([[5, 5, 5, 0, 0]])                # fruit 2 shows one pixel and gets no id
+    assert dominant_ids(gt, pred, [1, 2]) == {1: 5, 2: 0}
+    assert dominant_ids(gt, pred, [1, 2], min_px=2) == {1: 5}
