@@ -50,11 +50,12 @@ def run(seq: str = "synth_row", window: int = 0, steps: int = 300, frames: int =
     tiny = _subset(data, 0)  # train frames only: no renders at the end
     for _ in range(3):
         for skip in (True, False):
-            r = fit_window(tiny, replace(cfg, steps=12, skip_empty=skip))
+            r = fit_window(tiny, replace(cfg, steps=12, skip_empty=skip,
+                                         early_stop_transmittance=cfg.early_stop_transmittance if skip else 0.0))
             step_s[skip].append(r.fit_s / 12)
     rows = []
     for skip in (True, False):
-        model.cfg = replace(cfg, skip_empty=skip)
+        model.cfg = replace(cfg, skip_empty=skip, early_stop_transmittance=cfg.early_stop_transmittance if skip else 0.0)
         spr, secs, ps = [], [], []
         for i in np.flatnonzero(~data.is_train):
             t0 = time.perf_counter()

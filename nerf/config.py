@@ -89,9 +89,9 @@ class NerfConfig:
     occupancy_threshold: float = 0.01
     """a cell stays occupied while its EMA opacity over one marching step exceeds this."""
     skip_empty: bool = True
-    """sample only in occupied cells and stop rays early (off = dense marching, for benchmarks)."""
+    """sample only in occupied cells (off = every sample inside the window's bounds, for benchmarks)."""
     early_stop_transmittance: float = 1e-3
-    """rendering stops a ray once its transmittance drops below this."""
+    """rendering stops a ray once its transmittance drops below this (0 = never: march to the far plane)."""
     chunk_rays: int = 8192
     """rays per chunk when rendering images."""
     seed: int = 0

@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from typing import Literal
 
 import numpy as np
@@ -55,6 +55,9 @@ class PanopticConfig:
     ('shared', panoptic losses then train it too), or an independent full-size grid."""
     n_slots: int = 0
     """instance slots including slot 0 = stuff (0 = automatic: 1 + 3 x the ID window width)."""
+    stuff_only_steps: int = 150
+    """steps of the phase for a window without any thing detection in its training frames: only the
+    semantic head is trained (no assignment, no instance head), and every rendered instance id is 0."""
     instances: bool = True
     """train and render instances (off = semantic only, the Semantic-NeRF-like baseline: every rendered
     instance id is 0, so all fruits of one class in a frame form one segment)."""
@@ -132,6 +135,14 @@ class PanopticResult:
     """segment-to-slot assignments made."""
     overflow_segments: int = 0
     """segments that found no free slot in their frame (more segments than slots)."""
+    instances_skipped: bool = False
+    """the window's training frames had no thing detection: a semantic-only phase of cfg.stuff_only_steps ran."""
+    frames_without_things: int = 0
+    """frame draws whose assignment was skipped because the frame has no thing segment."""
+    frames_assigned: int = 0
+    """frame draws whose thing segments were assigned to slots."""
+    assign_s: float = 0.0
+    """wall time of the assignments (costs, ID window, slot memory, linear_sum_assignment)."""
 
     def state(self) -> dict:
         return {"cfg": asdict(self.cfg), "field": self.field.state_dict(), "n_slots": self.n_slots,
@@ -173,7 +184,7 @@ def weighted_samples(model, o: Tensor, d: Tensor, min_weight: float, round_sampl
     cfg = model.cfg
     edges = model.edges(dev)
     occ = model.occupied_fn()
-    eps = cfg.early_stop_transmittance if cfg.skip_empty else 0.0
+    eps = cfg.early_stop_transmittance
     rgb = torch.zeros(n, 3, device=dev)
     depth = torch.zeros(n, device=dev)
     trans = torch.ones(n, device=dev)
@@ -277,6 +288,12 @@ def fit_panoptic(model, labels: WindowLabels, is_train: np.ndarray, depths: np.n
     n, h, w = labels.semantic.shape
     if model.wh != (w, h):
         raise ValueError(f"labels are {w}x{h} but the model renders {model.wh[0]}x{model.wh[1]}")
+    train = np.flatnonzero(is_train)
+    things_all = np.isin(labels.semantic, cfg.thing_classes) & (labels.instance > 0)
+    train = train[[labels.semantic[i].__ne__(VOID).any() for i in train]]
+    skip_instances = cfg.instances and len(train) > 0 and not things_all[train].any()
+    if skip_instances:  # no fruit detected in the window: nothing to assign, no instance head to train
+        cfg = replace(cfg, instances=False, steps=min(cfg.steps, cfg.stuff_only_steps))
     k_np = model.intrinsics.cpu().numpy()
     window, n_slots = slot_window_for(labels, is_train, depths, k_np, cfg)
     pfield = panoptic_field(model, cfg, n_slots).to(dev)
@@ -289,11 +306,9 @@ def fit_panoptic(model, labels: WindowLabels, is_train: np.ndarray, depths: np.n
     opt = torch.optim.Adam(params)
     sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: 0.1 ** min(1.0, s / max(cfg.steps, 1)))
     rng = np.random.default_rng(seed)
-    train = np.flatnonzero(is_train)
-    things_all = np.isin(labels.semantic, cfg.thing_classes) & (labels.instance > 0)
-    train = train[[labels.semantic[i].__ne__(VOID).any() for i in train]]
     n_params = param_count(pfield) - (0 if cfg.instances else param_count(pfield.instance))
     result = PanopticResult(pfield, cfg, window if cfg.id_window and cfg.instances else None, n_slots, 0, 0.0, n_params)
+    result.instances_skipped = skip_instances
     if len(train) == 0:  # nothing labelled: heads stay untrained, renders say stuff/uniform
         result.fit_s = time.perf_counter() - t0
         return result
@@ -330,7 +345,9 @@ def fit_panoptic(model, labels: WindowLabels, is_train: np.ndarray, depths: np.n
         for j, i in enumerate(frames if cfg.instances else []):
             rows = torch.nonzero((fi == int(i)).to(dev) & is_thing).squeeze(1)
             if rows.numel() == 0:
+                result.frames_without_things += 1
                 continue  # a frame without fruit needs no assignment
+            t_assign = time.perf_counter()
             ids, local = torch.unique(inst[rows], return_inverse=True)
             cost = segment_costs(p_inst[rows].detach(), local, len(ids)).cpu().numpy()
             centres, sizes = segment_geometry(pts[rows.cpu().numpy()], local.cpu().numpy(), len(ids))
@@ -343,6 +360,8 @@ def fit_panoptic(model, labels: WindowLabels, is_train: np.ndarray, depths: np.n
                 cost = cost + cfg.memory_prior * memory.cost(np.nan_to_num(centres, nan=np.inf), sizes)
             slots = assign(cost, allowed)
             memory.update(slots, centres)
+            result.assign_s += time.perf_counter() - t_assign
+            result.frames_assigned += 1
             result.assignments += len(ids)
             result.overflow_segments += max(0, len(ids) - (n_slots - 1))
             target[rows] = torch.from_numpy(slots).to(dev)[local]

@@ -141,7 +141,7 @@ class NerfModel:
         trans = torch.ones(n, device=o.device)
         active = torch.arange(n, device=o.device)
         n_samples = 0
-        eps = self.cfg.early_stop_transmittance if self.cfg.skip_empty else 0.0
+        eps = self.cfg.early_stop_transmittance
         first = 0
         t_all, occ_all = candidates(o, d, edges, occ, jitter=False)
         while active.numel():

@@ -25,6 +25,8 @@ SCHEMA = table_schema(
     col("panoptic_steps", pa.int32(), "steps of the panoptic phase (0 = panoptic off)"),
     col("panoptic_fit_s", pa.float64(), "wall time of the panoptic phase (included in nothing else)", "s"),
     col("panoptic_params", pa.int64(), "trainable parameters of the panoptic part (delta grid + heads)"),
+    col("panoptic_instances", pa.bool_(), "the instance part was trained (false: no thing detection in the "
+        "window's training frames, so a short semantic-only phase ran and every instance id is 0)"),
     col("n_slots", pa.int32(), "instance slots of the window, slot 0 = stuff"),
     col("id_window_width", pa.int32(), "width of the repeated-ID rejection window in slots (0 = off)"),
     col("checkpoint_path", pa.string(), "model checkpoint (torch.save), relative to data/; '' if failed"),

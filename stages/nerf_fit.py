@@ -206,7 +206,8 @@ def fit_one(payload: dict) -> dict:
                "val_psnr": float(np.mean(list(res.val_psnr.values()))) if res.val_psnr else float("nan"),
                "train_psnr": res.train_psnr, "threads": torch.get_num_threads(),
                "panoptic_steps": pan.steps if pan else 0, "panoptic_fit_s": pan.fit_s if pan else 0.0,
-               "panoptic_params": pan.params if pan else 0, "n_slots": pan.n_slots if pan else 0,
+               "panoptic_params": pan.params if pan else 0,
+               "panoptic_instances": bool(pan is not None and pan.cfg.instances), "n_slots": pan.n_slots if pan else 0,
                "id_window_width": pan.slot_window.width if pan and pan.slot_window else 0,
                "checkpoint": f"window_{wid:03d}/checkpoint.pt"}
     return {"poses": poses.to_dict("list"), "metrics": metrics}
@@ -253,7 +254,8 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
             metric_rows.append({**base, "status": "failed", "error": msg, "threads": threads, "params": 0, "steps": 0,
                                 "fit_s": o.seconds, "render_s_per_image": np.nan, "samples_per_ray": np.nan,
                                 "val_psnr": np.nan, "train_psnr": np.nan, "checkpoint_path": "",
-                                "panoptic_steps": 0, "panoptic_fit_s": 0.0, "panoptic_params": 0, "n_slots": 0,
+                                "panoptic_steps": 0, "panoptic_fit_s": 0.0, "panoptic_params": 0,
+                                "panoptic_instances": False, "n_slots": 0,
                                 "id_window_width": 0})
             continue
         m = dict(o.result["metrics"])

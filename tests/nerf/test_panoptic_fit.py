@@ -84,6 +84,19 @@ def test_all_void_labels_train_nothing_and_still_render(fitted):
     assert np.isfinite(r["rgb"].numpy()).all() and r["semantic"].max() < 5
 
 
+def test_window_without_fruit_detections_skips_the_instance_part(fitted):
+    data, sem, inst, model = fitted
+    plant = np.where(np.isin(sem, [2, 3, 4]), 1, sem).astype(np.uint8)   # the detector saw no fruit at all
+    labels = WindowLabels(plant, np.zeros_like(inst), np.ones(sem.shape, np.float32))
+    cfg = PanopticConfig(steps=40, stuff_only_steps=10, frames_per_step=2, rays_per_frame=64)
+    pres = fit_panoptic(model, labels, data.is_train, data.depths, cfg)
+    assert pres.instances_skipped and pres.steps == 10 and pres.assignments == 0 and not pres.cfg.instances
+    assert pres.params < fit_panoptic(model, detector_like(sem, inst), data.is_train, data.depths,
+                                      PanopticConfig(steps=1)).params            # instance head not counted
+    r = render_panoptic(model, load_panoptic(pres.state(), model), 1)
+    assert (r["instance"] == 0).all()
+
+
 def test_nan_confidence_is_treated_as_zero():
     lab = WindowLabels(np.zeros((1, 2, 2), np.uint8), np.zeros((1, 2, 2), np.int32),
                        np.array([[[np.nan, 1.0], [np.inf, -1.0]]], np.float32))

@@ -37,8 +37,17 @@ def test_fit_learns_the_window_and_reloads(window, tmp_path):
 def test_skipping_evaluates_fewer_samples_than_dense_marching(window):
     cfg = preset("cpu", **FAST, refine_poses=False)
     skip = fit_window(window, replace(cfg, steps=30))
-    dense = fit_window(window, replace(cfg, steps=30, skip_empty=False))
+    dense = fit_window(window, replace(cfg, steps=30, skip_empty=False, early_stop_transmittance=0.0))
     assert skip.samples_per_ray * 2 < dense.samples_per_ray
+    # early termination alone (dense marching, so rays have samples behind the surface): the same model
+    # rendered with rays marched to the far plane
+    model = skip.model
+    model.cfg = replace(model.cfg, skip_empty=False)
+    stop = model.render_image(1)
+    model.cfg = replace(model.cfg, early_stop_transmittance=0.0)
+    full = model.render_image(1)
+    assert stop["samples_per_ray"] < full["samples_per_ray"]
+    assert torch.allclose(stop["rgb"], full["rgb"], atol=2e-2)
 
 
 def test_non_finite_loss_names_the_step(window, monkeypatch):

@@ -1,0 +1,38 @@
+import sys
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).parents[1] / "nerf"))
+from scene_fixture import tiny_window  # noqa: E402
+
+from bench.skips import _render_modes, _without_things  # noqa: E402
+from nerf.config import preset  # noqa: E402
+from nerf.panoptic_fit import WindowLabels  # noqa: E402
+from nerf.trainer import fit_window  # noqa: E402
+
+
+def test_without_things_turns_every_detection_into_a_miss():
+    sem = np.array([[[0, 1, 2, 4, 255]]], np.uint8)
+    lab = WindowLabels(sem, np.array([[[0, 0, 1, 2, 0]]], np.int32), np.array([[[1, 1, 0.8, 0.6, 0]]], np.float32))
+    bare = _without_things(lab)
+    assert bare.semantic.tolist() == [[[0, 1, 1, 1, 255]]]
+    assert (bare.instance == 0).all() and bare.confidence.tolist() == [[[1, 1, 1, 1, 0]]]
+
+
+def test_each_render_skip_evaluates_fewer_samples_and_keeps_the_image():
+    data = tiny_window(n=6, w=40, h=24)
+    res = fit_window(data, preset("cpu", steps=40, rays_per_step=256, n_levels=6, log2_capacity=12,
+                                  refine_poses=False), render_val=False)
+    model = res.model
+    r = _render_modes(model, data, repeats=1)
+    on, off = r["all skips"], r["no occupancy skipping"]
+    assert on["samples_per_ray"] < off["samples_per_ray"] and abs(on["psnr"] - off["psnr"]) < 1.0
+    assert model.cfg.skip_empty and model.cfg.early_stop_transmittance > 0  # settings restored
+    # in this tiny scene the occupied samples end within the first round anyway; early termination shows
+    # its saving where rays have samples behind the surface, as with dense marching
+    model.cfg = replace(model.cfg, skip_empty=False)
+    r = _render_modes(model, data, repeats=1)
+    on, off = r["all skips"], r["no early termination"]
+    assert on["samples_per_ray"] < off["samples_per_ray"] and abs(on["psnr"] - off["psnr"]) < 1.0
