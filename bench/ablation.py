@@ -1,10 +1,11 @@
-"""Panoptic ablation on one window: with and without the ID window (repeated-ID rejection), and
-delta grid vs one shared grid vs two independent grids. The colour phase is fitted once; every
+"""Panoptic ablation on one window: with and without the ID window (repeated-ID rejection), delta grid
+vs one shared grid vs two independent grids, and without the slot memory (alone, and together with the
+ID window: plain assignment on the predicted probabilities). The colour phase is fitted once; every
 variant trains its panoptic phase on its own copy of it, in one process, with the same seed, and is
 scored on every validation frame against the sequence's ground truth (the detector input scored on
 the same frames for reference).
 
-Output `ablation.parquet`, one row per variant: variant, grid_mode, id_window, val_psnr (dB), pq, sq,
+Output `ablation.parquet`, one row per variant: variant, grid_mode, id_window, memory_prior, val_psnr (dB), pq, sq,
 rq, pq_things, pq_stuff, miou, id_consistency, fruits_scored, pq_detector, miou_detector,
 params (colour + panoptic), panoptic_params, colour_fit_s, panoptic_fit_s, fit_s (colour + panoptic),
 render_s_per_image; and `ablation.png` (PQ, mIoU and ID consistency per variant).
@@ -40,6 +41,8 @@ VARIANTS: dict[str, dict] = {
     "delta, no ID window": dict(grid_mode="delta", id_window=False),
     "shared grid + ID window": dict(grid_mode="shared", id_window=True),
     "independent grids + ID window": dict(grid_mode="independent", id_window=True),
+    "delta + ID window, no slot memory": dict(grid_mode="delta", id_window=True, memory_prior=0.0),
+    "delta, plain assignment (no ID window, no slot memory)": dict(grid_mode="delta", id_window=False, memory_prior=0.0),
 }
 
 
@@ -83,7 +86,7 @@ def run(seq: str = "synth_row", window: int = 1, colour_steps: int = 0, panoptic
     det = score([(labels.semantic[i], labels.instance[i]) for i in val], gts)
     cfg = preset("cpu", **({"steps": colour_steps} if colour_steps else {}))
     t0 = time.perf_counter()
-    colour = fit_window(data, cfg)
+    colour = fit_window(data, cfg, render_val=False)
     colour_s = time.perf_counter() - t0
     base = PanopticConfig(**({"steps": panoptic_steps} if panoptic_steps else {}))
     rows = []
@@ -97,7 +100,7 @@ def run(seq: str = "synth_row", window: int = 1, colour_steps: int = 0, panoptic
             render_s.append(time.perf_counter() - t1)
             preds.append((r["semantic"], r["instance"]))
             psnrs.append(psnr(r["rgb"], torch.from_numpy(data.images[i]).float() / 255.0))
-        rows.append({"variant": name, **change, "val_psnr": float(np.mean(psnrs)), **score(preds, gts),
+        rows.append({"variant": name, "memory_prior": base.memory_prior, **change, "val_psnr": float(np.mean(psnrs)), **score(preds, gts),
                      "pq_detector": det["pq"], "miou_detector": det["miou"],
                      "params": param_count(model.field) + pres.params, "panoptic_params": pres.params,
                      "colour_fit_s": colour_s, "panoptic_fit_s": pres.fit_s, "fit_s": colour_s + pres.fit_s,

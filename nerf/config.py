@@ -49,6 +49,12 @@ class NerfConfig:
     """steps of each validation-pose registration."""
     depth_loss_weight: float = 0.1
     """weight of the depth loss (only on rays whose poses are detached, so it never moves poses)."""
+    depth_loss_fade: float = 0.0
+    """share of the steps over which the depth loss weight falls linearly to 0 (0 = constant weight):
+    depth shapes the geometry early, colour alone refines it and the poses later. Default row, window 1,
+    1500 steps: constant 0.1 -> val PSNR 24.0 dB, rendered depth median error 12 mm (vs sensor, < 1.5 m);
+    fade 0.4 -> 25.4 dB, 18 mm; weight 0 -> 25.8 dB, 24 mm. Kept off: the fruit map measures fruits
+    from the rendered depth."""
     opacity_loss_weight: float = 0.0
     """weight of the opacity loss: 1 - opacity reached by the sensor depth (plus a margin), on the rays with
     valid depth whose poses are detached; makes surfaces opaque so nothing behind them shows in renders

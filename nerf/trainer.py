@@ -215,6 +215,14 @@ def psnr(a: Tensor, b: Tensor) -> float:
     return float("inf") if mse == 0 else -10 * math.log10(mse)
 
 
+def depth_weight(cfg: NerfConfig, step: int) -> float:
+    """Depth loss weight at `step`: cfg.depth_loss_weight, falling linearly to 0 over the first
+    cfg.depth_loss_fade share of the steps when that is > 0."""
+    if cfg.depth_loss_fade <= 0:
+        return cfg.depth_loss_weight
+    return cfg.depth_loss_weight * max(0.0, 1.0 - step / (cfg.depth_loss_fade * cfg.steps))
+
+
 def _rays_for(model: NerfModel, poses: PoseCorrection, c2w0: Tensor, k: Tensor, frames: Tensor, u: Tensor, v: Tensor,
               attach: Tensor | None) -> tuple[Tensor, Tensor]:
     """Rays of pixels (u, v) of `frames` through the corrected poses; rows with attach = False detached."""
@@ -284,11 +292,12 @@ def fit_window(data: WindowData, cfg: NerfConfig, device: str = "cpu",
         target = images[frames, v, u].float() / 255.0
         loss_c = torch.mean((rgb - target) ** 2)
         loss = loss_c
-        if cfg.depth_loss_weight > 0:
+        w_depth = depth_weight(cfg, step)
+        if w_depth > 0:
             dpred = accumulate(s.t_mid, wts, s.ray_index, s.n_rays) + left * cfg.far_m
             m = (~pose_rays) & (dgt > 0) & (dgt < cfg.far_m)
             if m.any():
-                loss = loss + cfg.depth_loss_weight * torch.mean(torch.abs(dpred[m] - dgt[m]))
+                loss = loss + w_depth * torch.mean(torch.abs(dpred[m] - dgt[m]))
         if cfg.opacity_loss_weight > 0:
             # opacity reached by t_max: every sample of a valid-depth ray before it
             opa = accumulate((s.t_mid <= t_max[s.ray_index]).float(), wts, s.ray_index, s.n_rays)

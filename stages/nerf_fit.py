@@ -37,8 +37,10 @@ class ModelOverrides:
     """log2 table size per level."""
     depth_loss_weight: float = -1.0
     """weight of the depth loss."""
+    depth_loss_fade: float = 0.0
+    """share of the steps over which the depth loss weight falls to 0 (nerf/config.py)."""
     skip_empty: int = -1
-    """1 = occupancy skipping and early termination, 0 = dense marching (benchmarks)."""
+    """1 = occupancy skipping, 0 = every sample inside the window's bounds (benchmarks)."""
 
 
 @dataclass(frozen=True)

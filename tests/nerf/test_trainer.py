@@ -68,3 +68,13 @@ def test_fixed_poses_stay_fixed_when_refinement_is_off(window):
     cfg = preset("cpu", **{**FAST, "steps": 25, "pose_warmup_steps": 0, "lr_pose": 1e-2})
     res = fit_window(window, replace(cfg, refine_poses=False))
     assert np.allclose(res.poses_c2w, window.poses_c2w, atol=1e-6)
+
+
+def test_depth_loss_fades_to_zero_over_its_share_of_the_steps():
+    from nerf.trainer import depth_weight
+
+    const = preset("cpu", steps=100, depth_loss_weight=0.1)
+    assert depth_weight(const, 0) == depth_weight(const, 99) == 0.1
+    fade = replace(const, depth_loss_fade=0.4)
+    assert depth_weight(fade, 0) == pytest.approx(0.1) and depth_weight(fade, 20) == pytest.approx(0.05)
+    assert depth_weight(fade, 40) == 0.0 and depth_weight(fade, 99) == 0.0
