@@ -9,6 +9,7 @@ import pandas as pd
 from scipy.optimize import linear_sum_assignment
 
 import schemas
+from nerf.geometry import pose_matrix
 from nerf.metrics import ate_rmse
 from nerf.panoptic_metrics import ConfusionAccumulator, PanopticAccumulator, dominant_ids, id_consistency
 from pipeline.classes import DEFAULT_CLASSES, N_CLASSES, THING_IDS, VOID
@@ -23,14 +24,16 @@ OUTPUTS = ("evaluation",)
 STUFF_IDS = tuple(c.id for c in DEFAULT_CLASSES if not c.is_thing)
 POSE_COLS = ["tx", "ty", "tz"]
 UNITS = {"psnr": "dB", "ate_odometry_m": "m", "ate_refined_m": "m", "count_gt": "fruits", "count_pred": "fruits",
-         "count_gt_near_row_all": "fruits", "fruits_matched": "fruits", "id_consistency_n_fruits": "fruits",
+         "count_gt_near_row_all": "fruits", "fruits_matched": "fruits",
+         "fruits_matched_unaligned": "fruits", "id_consistency_n_fruits": "fruits",
          "n_frames": "frames", "n_frames_detector": "frames"}
 
 
 @dataclass(frozen=True)
 class Config:
     match_max_distance_m: float = 0.05
-    """a predicted fruit matches a ground-truth fruit (Hungarian on centre distance) only within this distance."""
+    """a predicted fruit matches a ground-truth fruit (Hungarian on centre distance, after moving the predicted
+    centres into the ground-truth frame through the pose of a frame that saw them) only within this distance."""
     min_frames_id: int = 3
     """fruits seen in at least this many frames are scored for ID consistency."""
     min_visible_px: int = 12
@@ -176,8 +179,31 @@ def match_fruits(pred: np.ndarray, gt: np.ndarray, max_m: float) -> list[tuple[i
     return [(int(i), int(j), float(d[i, j])) for i, j in zip(r, c) if d[i, j] <= max_m]
 
 
-def row_scores(inputs: dict, gt: GroundTruth, gt_fruits: pd.DataFrame | None, cfg: Config,
-               ctx: StageContext) -> list[tuple[str, str, float]]:
+def to_ground_truth_frame(fruits: pd.DataFrame, frames: pd.DataFrame, gt_poses: pd.DataFrame | None) -> np.ndarray:
+    """Fruit centres [F, 3] moved from the map's (odometry) world frame into the ground truth's, each through
+    the camera of one frame that saw it (the frame nearest the middle of first_frame_id..last_frame_id):
+    p_gt = T_gt(f) T_odo(f)^-1 p. The row map drifts with the odometry (centimetres over a row); this local
+    alignment scores each fruit where the robot thought it was when it saw it, as a tape measure from the
+    camera would. Without ground-truth poses the centres are returned unchanged."""
+    xyz = fruits[["x_m", "y_m", "z_m"]].to_numpy(np.float64)
+    if gt_poses is None or len(fruits) == 0:
+        return xyz
+    cols = ["tx", "ty", "tz", "qx", "qy", "qz", "qw"]
+    both = frames[["frame_id", *cols]].reset_index(drop=True).merge(gt_poses[["frame_id", *cols]], on="frame_id",
+                                                                     suffixes=("_odo", "_gt"))
+    if both.empty:
+        return xyz
+    fids = both.frame_id.to_numpy()
+    t_odo = pose_matrix(both[[f"{c}_odo" for c in cols]].to_numpy(np.float64))
+    t_gt = pose_matrix(both[[f"{c}_gt" for c in cols]].to_numpy(np.float64))
+    mid = (fruits.first_frame_id.to_numpy(np.float64) + fruits.last_frame_id.to_numpy(np.float64)) / 2
+    ref = np.abs(fids[None, :] - mid[:, None]).argmin(1)
+    rel = t_gt[ref] @ np.linalg.inv(t_odo[ref])                                          # [F, 4, 4]
+    return np.einsum("fij,fj->fi", rel[:, :3, :3], xyz) + rel[:, :3, 3]
+
+
+def row_scores(inputs: dict, gt: GroundTruth, gt_fruits: pd.DataFrame | None, gt_poses: pd.DataFrame | None,
+               cfg: Config, ctx: StageContext) -> list[tuple[str, str, float]]:
     pf: pd.DataFrame = inputs["panoptic_frames"]
     out: dict[str, float] = {}
     fused = PanopticScore(cfg.min_visible_px)
@@ -203,7 +229,11 @@ def row_scores(inputs: dict, gt: GroundTruth, gt_fruits: pd.DataFrame | None, cf
                    count_error_rel=(n_pred - n_gt) / n_gt if n_gt else float("nan"),
                    count_gt_near_row_all=float(len(near_ids)))
         gxyz = g[["x_m", "y_m", "z_m"]].to_numpy(np.float64)
-        matches = match_fruits(pred[["x_m", "y_m", "z_m"]].to_numpy(np.float64), gxyz, cfg.match_max_distance_m)
+        raw = pred[["x_m", "y_m", "z_m"]].to_numpy(np.float64)
+        aligned = to_ground_truth_frame(pred, gt.frames, gt_poses)
+        raw_matches = match_fruits(raw, gxyz, cfg.match_max_distance_m)
+        out["fruits_matched_unaligned"] = float(len(raw_matches))
+        matches = match_fruits(aligned, gxyz, cfg.match_max_distance_m)
         out.update(fruits_matched=float(len(matches)),
                    fruit_recall=len(matches) / n_gt if n_gt else float("nan"),
                    fruit_precision=len(matches) / len(pred) if len(pred) else float("nan"))
@@ -251,7 +281,7 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
     per_window = pd.DataFrame(rows, columns=["scope", "metric", "value"])
     means = per_window.groupby("metric", sort=False).value.mean()
     rows += [("windows_mean", k, float(v)) for k, v in means.items()]
-    rows += row_scores(inputs, gt, gt_fruits, cfg, ctx)
+    rows += row_scores(inputs, gt, gt_fruits, gt_poses, cfg, ctx)
     out = pd.DataFrame(rows, columns=["scope", "metric", "value"])
     out["value"] = out["value"].astype(np.float64)
     out["unit"] = [unit(m) for m in out.metric]

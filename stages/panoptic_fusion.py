@@ -35,6 +35,10 @@ class Config:
     split_distance_m: float = 0.08
     """a slot whose per-frame centres form clusters farther apart than this inside one window is split into
     several fruits (the NeRF gave one slot to two fruits at opposite ends of the frustum); 0 = never split."""
+    min_split_frames: int = 2
+    """a split-off cluster becomes a fruit of its own only if it holds at least this many frames; a single
+    frame's stray centre (a sliver at the image border, un-projected onto what lies behind it) rejoins the
+    slot's main cluster."""
     min_slot_px: int = 4
     """slots with fewer pixels over all the window's frames are dropped (pixels become void)."""
     max_points_per_view: int = 400
@@ -45,9 +49,9 @@ class Config:
             raise ValueError(f"panoptic_fusion.max_match_distance_m must be > 0, got {self.max_match_distance_m}")
         if not 0.0 <= self.min_mask_iou <= 1.0:
             raise ValueError(f"panoptic_fusion.min_mask_iou must be in [0, 1], got {self.min_mask_iou}")
-        if self.split_distance_m < 0 or self.min_slot_px < 1 or self.max_points_per_view < 1:
-            raise ValueError("panoptic_fusion: split_distance_m must be >= 0, min_slot_px and "
-                             "max_points_per_view >= 1")
+        if self.split_distance_m < 0 or self.min_slot_px < 1 or self.max_points_per_view < 1 or self.min_split_frames < 1:
+            raise ValueError("panoptic_fusion: split_distance_m must be >= 0, min_slot_px, max_points_per_view and "
+                             "min_split_frames >= 1")
 
 
 # -- shared helpers (also used by fruit_count, evaluate and report) ---------------------------------------
@@ -169,8 +173,9 @@ class LocalFruit:
     members: list[int] = field(default_factory=list)
 
 
-def split_frames(frame_centres: dict[int, np.ndarray], dist_m: float) -> list[list[int]]:
-    """Single-linkage clusters of a slot's per-frame centres (frames without a centre join the largest)."""
+def split_frames(frame_centres: dict[int, np.ndarray], dist_m: float, min_frames: int = 1) -> list[list[int]]:
+    """Single-linkage clusters of a slot's per-frame centres (frames without a centre join the largest, and
+    so do clusters of fewer than `min_frames` frames)."""
     fids = [f for f, c in frame_centres.items() if c is not None]
     rest = [f for f, c in frame_centres.items() if c is None]
     if dist_m <= 0 or len(fids) < 2:
@@ -191,7 +196,8 @@ def split_frames(frame_centres: dict[int, np.ndarray], dist_m: float) -> list[li
     for i, f in enumerate(fids):
         groups[find(i)].append(f)
     out = sorted((sorted(g) for g in groups.values()), key=lambda g: (-len(g), g[0]))
-    out[0] = sorted(out[0] + rest)
+    small = [f for g in out[1:] if len(g) < min_frames for f in g]
+    out = [sorted(out[0] + rest + small)] + [g for g in out[1:] if len(g) >= min_frames]
     return out
 
 
@@ -320,7 +326,7 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
     part_of: dict[tuple[int, int, int], int] = {}
     for (wid, slot), per_frame in sorted(slot_views.items()):
         centres = {f: (np.median(sv.points, 0) if len(sv.points) else None) for f, sv in per_frame.items()}
-        parts = split_frames(centres, cfg.split_distance_m)
+        parts = split_frames(centres, cfg.split_distance_m, cfg.min_split_frames)
         if len(parts) > 1:
             ctx.count("slots_split")
         for p, fids in enumerate(parts):

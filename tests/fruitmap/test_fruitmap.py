@@ -88,6 +88,10 @@ def test_split_slots_become_separate_fruits_and_close_slots_never_merge_within_a
     assert groups == [[0, 2], [1], [3]]  # window 1's slot joins the nearer of window 0's two slots
     parts = panoptic_fusion.split_frames({0: c, 1: c + 0.01, 5: c + [0.5, 0, 0], 6: None}, 0.08)
     assert parts == [[0, 1, 6], [5]]
+    # a one-frame stray cluster is not a fruit of its own; two frames far away are
+    far = c + [0.5, 0, 0]
+    assert panoptic_fusion.split_frames({0: c, 1: c + 0.01, 5: far, 6: None}, 0.08, min_frames=2) == [[0, 1, 5, 6]]
+    assert panoptic_fusion.split_frames({0: c, 1: c, 5: far, 7: far + 0.01}, 0.08, min_frames=2) == [[0, 1], [5, 7]]
 
 
 def test_fusion_uses_mask_overlap_on_shared_frames():
