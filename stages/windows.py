@@ -1,4 +1,11 @@
-"""Cut the sequence into NeRF windows around the labelled frames, with a train/validation split."""
+"""Cut the sequence into NeRF windows around the labelled frames, with a train/validation split.
+
+Every other frame of the sequence is a validation frame, counted from the first window's centre, and
+every window's centre frame (the labelled, evaluation frame) is one too. A frame shared by overlapping
+windows thus has the same role in all of them: no frame trains one window and validates its neighbour,
+and a shared validation frame is rendered by every window that holds it, so panoptic_fusion can take
+it from the window whose centre is nearest (where the fruits in it are best covered by training frames).
+"""
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -53,11 +60,13 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
         ctx.note(f"no labelled frames: {len(cs)} windows centred every "
                  f"{cfg.unlabelled_spacing or 2 * cfg.half_width} frames (no evaluation frame)")
     rows = []
+    anchor = pos[int(cs[0])] if len(cs) else 0
     for w, c in enumerate(cs):
         i = pos[int(c)]
         for j in range(max(0, i - cfg.half_width), min(len(ids), i + cfg.half_width + 1)):
             off = j - i
-            rows.append((w, int(ids[j]), int(c), off, "train" if off % 2 else "val", off == 0 and from_labels))
+            val = off == 0 or (j - anchor) % 2 == 0
+            rows.append((w, int(ids[j]), int(c), off, "val" if val else "train", off == 0 and from_labels))
     df = pd.DataFrame(rows, columns=["window_id", "frame_id", "center_frame_id", "offset", "split", "is_center"])
     df["n_windows"] = df.groupby("frame_id")["window_id"].transform("nunique").astype("int32")
     overlap = int((df.drop_duplicates("frame_id")["n_windows"] > 1).sum())

@@ -26,6 +26,16 @@ def test_one_window_per_labelled_frame_clipped_with_alternating_split():
     assert ctx.summary["windows"] == 2
 
 
+def test_shared_frames_have_one_role_in_every_window_and_centres_are_validation():
+    w, _ = run(40, {10, 17}, half_width=6)          # centres of opposite parity, overlapping windows
+    roles = w.groupby("frame_id")["split"].nunique()
+    assert (roles == 1).all()
+    assert (w[w.is_center]["split"] == "val").all()
+    w1 = w[w.window_id == 1].set_index("frame_id")["split"]
+    assert w1.loc[17] == "val" and (w1.loc[[12, 14, 16, 18]] == "val").all() and (w1.loc[[13, 15, 19]] == "train").all()
+    assert 0.4 <= (w1 == "train").mean() <= 0.6
+
+
 def test_overlap_is_recorded():
     w, ctx = run(30, {10, 14}, half_width=5)
     n = w.drop_duplicates("frame_id").set_index("frame_id")["n_windows"]
