@@ -54,3 +54,17 @@ def bar_plot(labels: list[str], values: list[float], ylabel: str, title: str, pa
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=100)
     plt.close(fig)
+
+
+def window_rows(data_root: Path, seq: str, window: int) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """A window's rows of windows.parquet joined with frames.parquet (in frame order), and the sequence's
+    detections_filtered table; a clear error if the sequence has no such window."""
+    from pipeline.io import read_table
+
+    interim = data_root / "interim" / seq
+    frames = read_table(interim / "frames.parquet", "frames")
+    windows = read_table(interim / "windows.parquet", "windows")
+    w = windows[windows.window_id == window].merge(frames, on="frame_id").sort_values("frame_id")
+    if w.empty:
+        raise ValueError(f"window {window} not in {seq}; windows: {sorted(windows.window_id.unique())}")
+    return w.reset_index(drop=True), read_table(interim / "detections_filtered.parquet", "detections_filtered")

@@ -24,7 +24,7 @@ import numpy as np
 import pandas as pd
 import torch
 
-from bench._common import write_parquet
+from bench._common import window_rows, write_parquet
 from nerf.config import preset
 from nerf.field import param_count
 from nerf.panoptic_fit import PanopticConfig, fit_panoptic, render_panoptic
@@ -72,13 +72,8 @@ def run(seq: str = "synth_row", window: int = 1, colour_steps: int = 0, panoptic
         data_root: Path = Path("data"), out_dir: Path = Path("data/bench")) -> pd.DataFrame:
     torch.set_num_threads(threads)
     interim = data_root / "interim" / seq
-    frames = read_table(interim / "frames.parquet", "frames")
-    windows = read_table(interim / "windows.parquet", "windows")
-    dets = read_table(interim / "detections_filtered.parquet", "detections")
+    w, dets = window_rows(data_root, seq, window)
     gt_segments = read_table(interim / "gt_segments.parquet", "gt_segments")
-    w = windows[windows.window_id == window].merge(frames, on="frame_id")
-    if w.empty:
-        raise ValueError(f"window {window} not in {seq}; windows: {sorted(windows.window_id.unique())}")
     data = load_window(w, data_root)
     labels = load_labels(w, dets, data_root)
     val = np.flatnonzero(~data.is_train)

@@ -22,7 +22,7 @@ import numpy as np
 import pandas as pd
 import torch
 
-from bench._common import write_parquet
+from bench._common import window_rows, write_parquet
 from bench.ablation import ground_truth
 from bench.compare import fit_and_score, subset
 from nerf.config import preset
@@ -69,13 +69,8 @@ def run(seq: str = "synth_row", window: int = 1, mode: str = "default", val_fram
     settings = f"{mode}: base colour_steps={m['colour_steps']} panoptic_steps={m['panoptic_steps']} val_frames={m['val_frames']}"
     print(f"pag bench pareto, {settings}", flush=True)
     interim = data_root / "interim" / seq
-    frames = read_table(interim / "frames.parquet", "frames")
-    windows = read_table(interim / "windows.parquet", "windows")
-    dets = read_table(interim / "detections_filtered.parquet", "detections")
+    w, dets = window_rows(data_root, seq, window)
     gt_segments = read_table(interim / "gt_segments.parquet", "gt_segments")
-    w = windows[windows.window_id == window].merge(frames, on="frame_id")
-    if w.empty:
-        raise ValueError(f"window {window} not in {seq}; windows: {sorted(windows.window_id.unique())}")
     data, labels = subset(load_window(w, data_root), load_labels(w, dets, data_root), m["val_frames"])
     wk = w[w.frame_id.isin(set(data.frame_ids.tolist()))].reset_index(drop=True)
     gts = [ground_truth(wk.iloc[i], gt_segments, data_root) for i in np.flatnonzero(~data.is_train)]

@@ -17,10 +17,9 @@ import numpy as np
 import pandas as pd
 import torch
 
-from bench._common import bar_plot, write_parquet
+from bench._common import bar_plot, window_rows, write_parquet
 from nerf.config import preset
 from nerf.trainer import WindowData, fit_window, psnr
-from pipeline.io import read_table
 from stages.nerf_fit import load_window
 
 
@@ -36,11 +35,7 @@ def _subset(data: WindowData, n_val: int) -> WindowData:
 def run(seq: str = "synth_row", window: int = 0, steps: int = 300, frames: int = 3, threads: int = 2,
         data_root: Path = Path("data"), out_dir: Path = Path("data/bench")) -> pd.DataFrame:
     torch.set_num_threads(threads)
-    frames_t = read_table(data_root / "interim" / seq / "frames.parquet", "frames")
-    windows = read_table(data_root / "interim" / seq / "windows.parquet", "windows")
-    w = windows[windows.window_id == window].merge(frames_t, on="frame_id")
-    if w.empty:
-        raise ValueError(f"window {window} not in {seq}; windows: {sorted(windows.window_id.unique())}")
+    w, _ = window_rows(data_root, seq, window)
     data = _subset(load_window(w, data_root), frames)
     cfg = preset("cpu", steps=steps)
     res = fit_window(data, cfg)

@@ -25,13 +25,12 @@ import numpy as np
 import pandas as pd
 import torch
 
-from bench._common import bar_plot, median, write_parquet
+from bench._common import bar_plot, median, window_rows, write_parquet
 from bench.render import _subset
 from nerf.config import preset
 from nerf.panoptic_fit import PanopticConfig, WindowLabels, fit_panoptic
 from nerf.trainer import fit_window, psnr
 from pipeline.classes import THING_IDS
-from pipeline.io import read_table
 from stages.nerf_fit import load_labels, load_window
 
 TINY_ROW = ["synth.n_frames=12", "synth.width=64", "synth.height=40", "synth.n_labelled=2", "synth.supersample=1",
@@ -90,13 +89,7 @@ def run(seq: str = "synth_row", window: int = 0, steps: int = 300, frames: int =
         repeats: int = 2, threads: int = 2, data_root: Path = Path("data"),
         out_dir: Path = Path("data/bench")) -> pd.DataFrame:
     torch.set_num_threads(threads)
-    interim = data_root / "interim" / seq
-    frames_t = read_table(interim / "frames.parquet", "frames")
-    windows = read_table(interim / "windows.parquet", "windows")
-    dets = read_table(interim / "detections_filtered.parquet", "detections_filtered")
-    w = windows[windows.window_id == window].merge(frames_t, on="frame_id").sort_values("frame_id")
-    if w.empty:
-        raise ValueError(f"window {window} not in {seq}; windows: {sorted(windows.window_id.unique())}")
+    w, dets = window_rows(data_root, seq, window)
     full = load_window(w, data_root)
     res = fit_window(full, preset("cpu", steps=steps), render_val=False)
     model = res.model
