@@ -67,4 +67,4 @@ def window_rows(data_root: Path, seq: str, window: int) -> tuple[pd.DataFrame, p
     w = windows[windows.window_id == window].merge(frames, on="frame_id").sort_values("frame_id")
     if w.empty:
         raise ValueError(f"window {window} not in {seq}; windows: {sorted(windows.window_id.unique())}")
-    return w.reset_index(drop=True), read_table(interim / "detections_filtered.parquet", "detections_filtered")
+    return w.reset_index(drop=True), read_table(interim / "detections_filtered.parquet", "detections")
