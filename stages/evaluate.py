@@ -10,7 +10,7 @@ from scipy.optimize import linear_sum_assignment
 
 import schemas
 from nerf.geometry import pose_matrix
-from nerf.metrics import ate_rmse
+from nerf.metrics import ate_rmse, rotation_error_deg
 from nerf.panoptic_metrics import ConfusionAccumulator, PanopticAccumulator, dominant_ids, id_consistency
 from pipeline.classes import DEFAULT_CLASSES, N_CLASSES, THING_IDS, VOID
 from pipeline.images import read_label
@@ -23,7 +23,9 @@ OUTPUTS = ("evaluation",)
 
 STUFF_IDS = tuple(c.id for c in DEFAULT_CLASSES if not c.is_thing)
 POSE_COLS = ["tx", "ty", "tz"]
-UNITS = {"psnr": "dB", "ate_odometry_m": "m", "ate_refined_m": "m", "count_gt": "fruits", "count_pred": "fruits",
+QUAT_COLS = ["qx", "qy", "qz", "qw"]
+UNITS = {"psnr": "dB", "ate_odometry_m": "m", "ate_refined_m": "m", "rot_error_refined_deg": "deg",
+         "rot_error_odometry_deg": "deg", "count_gt": "fruits", "count_pred": "fruits",
          "count_gt_near_row_all": "fruits", "fruits_matched": "fruits",
          "fruits_matched_unaligned": "fruits", "id_consistency_n_fruits": "fruits",
          "n_frames": "frames", "n_frames_detector": "frames"}
@@ -160,11 +162,19 @@ def window_scores(inputs: dict, gt: GroundTruth, gt_poses: pd.DataFrame | None, 
         out.update(n_frames=float(nerf.n), n_frames_detector=float(det.n))
         if gt_poses is not None:
             wp = poses[poses.window_id == wid].merge(gt_poses, on="frame_id", suffixes=("", "_gt"))
-            wp = wp.merge(frames[["frame_id", *POSE_COLS]].reset_index(drop=True), on="frame_id", suffixes=("", "_odo"))
+            wp = wp.merge(frames[["frame_id", *POSE_COLS, *QUAT_COLS]].reset_index(drop=True), on="frame_id",
+                          suffixes=("", "_odo"))
             if len(wp):
                 g = wp[[f"{c}_gt" for c in POSE_COLS]].to_numpy()
                 out["ate_refined_m"] = ate_rmse(wp[POSE_COLS].to_numpy(), g)
                 out["ate_odometry_m"] = ate_rmse(wp[[f"{c}_odo" for c in POSE_COLS]].to_numpy(), g)
+                # with a scale in the alignment too: the trajectory's shape, whatever its length
+                out["ate_refined_sim3_m"] = ate_rmse(wp[POSE_COLS].to_numpy(), g, "sim3")
+                out["ate_odometry_sim3_m"] = ate_rmse(wp[[f"{c}_odo" for c in POSE_COLS]].to_numpy(), g, "sim3")
+                if set(f"{c}_gt" for c in QUAT_COLS) <= set(wp.columns):
+                    rot = lambda sfx: pose_matrix(wp[[f"{c}{sfx}" for c in POSE_COLS + QUAT_COLS]].to_numpy())[:, :3, :3]  # noqa: E731
+                    out["rot_error_refined_deg"] = rotation_error_deg(rot(""), rot("_gt"))
+                    out["rot_error_odometry_deg"] = rotation_error_deg(rot("_odo"), rot("_gt"))
         rows += [(scope, k, v) for k, v in out.items()]
     return rows
 

@@ -305,3 +305,17 @@ def test_without_any_panoptic_render_every_stage_still_writes_its_outputs(make_r
 def test_a_second_run_skips_the_four_stages(perfect_row):
     res = perfect_row.runner().run(["panoptic_fusion", "fruit_count", "evaluate", "report"])
     assert [r.status for r in res] == ["skipped"] * 4
+
+
+def test_fruit_centres_are_moved_into_the_ground_truth_frame_through_a_frame_that_saw_them():
+    ident = [0.0, 0.0, 0.0, 1.0]
+    # odometry has drifted +0.05 m in x by frame 10 (none at frame 0); the ground truth has not
+    frames = pd.DataFrame({"frame_id": [0, 10], "tx": [0.0, 1.05], "ty": 0.0, "tz": 0.0,
+                           **dict(zip(["qx", "qy", "qz", "qw"], ident))})
+    gt = pd.DataFrame({"frame_id": [0, 10], "tx": [0.0, 1.0], "ty": 0.0, "tz": 0.0,
+                       **dict(zip(["qx", "qy", "qz", "qw"], ident))})
+    fruits = pd.DataFrame({"x_m": [0.2, 1.25], "y_m": 0.5, "z_m": 0.1, "first_frame_id": [0, 9],
+                           "last_frame_id": [1, 10]})
+    moved = evaluate.to_ground_truth_frame(fruits, frames, gt)
+    np.testing.assert_allclose(moved, [[0.2, 0.5, 0.1], [1.2, 0.5, 0.1]], atol=1e-9)
+    np.testing.assert_allclose(evaluate.to_ground_truth_frame(fruits, frames, None), fruits[["x_m", "y_m", "z_m"]])
