@@ -2,11 +2,13 @@
 phase with online poses, then the panoptic phase) with one setting of levels, log2 table capacity, colour
 steps and rays per step, and is scored on the same validation frames against ground truth. The Pareto
 fronts (least fit time for the quality) of fit time vs PSNR and fit time vs PQ are plotted, with the
-presets (their knobs, at this run's step count where the preset's own is longer) marked. Image scale is
-not a knob here: the windows' images come at one resolution from ingest.
+presets (their knobs, at this run's step count where the preset's own is longer) marked. Samples per ray
+move with the marching step (`step_factor` x the preset's step_scale); image scale (`image_scale`) fits,
+renders and scores the window at a lower resolution (colour by area averaging, depth, labels and the
+ground truth by nearest pixel, intrinsics scaled), so its PSNR and PQ are those of the smaller images.
 
 Output `pareto.parquet`, one row per point: point, preset ('cpu', 'S', 'L' or '' for other settings),
-n_levels, log2_capacity, colour_steps, rays_per_step, panoptic_steps, params, fit_min_per_window
+n_levels, log2_capacity, image_scale, step_scale, samples_per_ray (training), colour_steps, rays_per_step, panoptic_steps, params, fit_min_per_window
 (colour + panoptic, minutes), render_s_per_image (median, colour + panoptic in one pass), psnr (dB), pq,
 miou, id_consistency, front_psnr / front_pq (on the front of fit time vs that metric), val_frames,
 settings; and `pareto.png`.
@@ -16,8 +18,10 @@ settings; and `pareto.png`.
 from __future__ import annotations
 
 import argparse
+from dataclasses import replace
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pandas as pd
 import torch
@@ -26,7 +30,8 @@ from bench._common import window_rows, write_parquet
 from bench.ablation import ground_truth
 from bench.compare import fit_and_score, subset
 from nerf.config import preset
-from nerf.panoptic_fit import PanopticConfig
+from nerf.panoptic_fit import PanopticConfig, WindowLabels
+from nerf.trainer import WindowData
 from pipeline.io import read_table
 from stages.nerf_fit import load_labels, load_window
 
@@ -39,6 +44,8 @@ POINTS: list[tuple[str, str, dict]] = [
     ("cpu, 512 rays", "cpu", dict(rays_per_step=512)),
     ("14 levels, 2^17", "cpu", dict(n_levels=14, log2_capacity=17)),
     ("cpu, double steps", "cpu", dict(steps_factor=2.0)),
+    ("cpu, 2x marching step", "cpu", dict(step_factor=2.0)),
+    ("cpu, half image scale", "cpu", dict(image_scale=0.5)),
 ]
 LONG_POINTS = POINTS + [
     ("16 levels, 2^18, 2048 rays", "cpu", dict(n_levels=16, log2_capacity=18, rays_per_step=2048)),
@@ -47,6 +54,23 @@ LONG_POINTS = POINTS + [
 MODES = {"quick": dict(colour_steps=100, panoptic_steps=80, val_frames=3),
          "default": dict(colour_steps=200, panoptic_steps=150, val_frames=3),
          "long": dict(colour_steps=600, panoptic_steps=400, val_frames=6)}
+
+
+def downscale(data: WindowData, labels: WindowLabels, gts: list, scale: float
+              ) -> tuple[WindowData, WindowLabels, list]:
+    """The window, its detector labels and ground truth at `scale` x the resolution (1 = unchanged)."""
+    if scale == 1.0:
+        return data, labels, gts
+    n, h, w = data.images.shape[:3]
+    size = (max(1, int(round(w * scale))), max(1, int(round(h * scale))))
+    sx, sy = size[0] / w, size[1] / h
+    near = lambda a: cv2.resize(a, size, interpolation=cv2.INTER_NEAREST)  # noqa: E731
+    k = data.intrinsics * np.array([sx, sy, sx, sy])
+    small = WindowData(np.stack([cv2.resize(im, size, interpolation=cv2.INTER_AREA) for im in data.images]),
+                       np.stack([near(d) for d in data.depths]), k, data.poses_c2w, data.is_train, data.frame_ids)
+    lab = WindowLabels(np.stack([near(a) for a in labels.semantic]),
+                       np.stack([near(a) for a in labels.instance]), np.stack([near(a) for a in labels.confidence]))
+    return small, lab, [(near(gs), near(gi)) for gs, gi in gts]
 
 
 def pareto_front(cost: np.ndarray, quality: np.ndarray) -> np.ndarray:
@@ -79,10 +103,14 @@ def run(seq: str = "synth_row", window: int = 1, mode: str = "default", val_fram
     for name, pre, change in (LONG_POINTS if mode == "long" else POINTS):
         change = dict(change)
         steps = max(1, int(round(m["colour_steps"] * change.pop("steps_factor", 1.0))))
+        scale = change.pop("image_scale", 1.0)
+        step_factor = change.pop("step_factor", 1.0)
         ncfg = preset(pre, steps=steps, seed=window, **change)
-        r = fit_and_score(data, labels, gts, ncfg, pcfg)
+        ncfg = replace(ncfg, step_scale=ncfg.step_scale * step_factor)
+        r = fit_and_score(*downscale(data, labels, gts, scale), ncfg, pcfg)
         rows.append({"point": name, "preset": pre if not change and name.endswith("preset") else "",
-                     "n_levels": ncfg.n_levels, "log2_capacity": ncfg.log2_capacity, **r,
+                     "n_levels": ncfg.n_levels, "log2_capacity": ncfg.log2_capacity, "image_scale": scale,
+                     "step_scale": ncfg.step_scale, **r,
                      "val_frames": int((~data.is_train).sum()), "settings": settings, "seq": seq, "window": window})
         print(f"{name}: fit {r['fit_min_per_window']:.2f} min, render {r['render_s_per_image']:.1f} s, "
               f"PSNR {r['psnr']:.2f}, PQ {r['pq']:.3f}", flush=True)
@@ -134,7 +162,8 @@ def main(argv: list[str] | None = None) -> int:
     a = p.parse_args(argv)
     mode = "quick" if a.quick else "long" if a.long else "default"
     df = run(a.seq, a.window, mode, a.val_frames, a.threads, a.data_root, a.out)
-    cols = ["point", "n_levels", "log2_capacity", "colour_steps", "rays_per_step", "params", "fit_min_per_window",
+    cols = ["point", "n_levels", "log2_capacity", "colour_steps", "rays_per_step", "image_scale", "step_scale",
+            "samples_per_ray", "params", "fit_min_per_window",
             "render_s_per_image", "psnr", "pq", "miou", "front_psnr", "front_pq"]
     print(df[cols].to_string(index=False, float_format=lambda v: f"{v:.3f}"))
     return 0

@@ -27,3 +27,22 @@ def test_compare_table_means_windows_and_reports_skips():
     md = markdown(df)
     assert "| ours cpu | online refinement | 21.00 | 60.0% |" in md
     assert "skipped: no colmap_poses" in md and "colour steps 100" in md
+
+
+def test_pareto_image_scale_halves_images_labels_truth_and_intrinsics():
+    from bench.pareto import downscale
+    from nerf.panoptic_fit import WindowLabels
+    from nerf.trainer import WindowData
+
+    img = np.zeros((1, 4, 6, 3), np.uint8)
+    img[0, :, :2] = 200                                   # left third bright
+    sem = np.zeros((1, 4, 6), np.uint8)
+    sem[0, :, 4:] = 2
+    data = WindowData(img, np.full((1, 4, 6), 0.5, np.float32), np.array([[10.0, 10.0, 3.0, 2.0]]),
+                      np.eye(4)[None], np.array([True]), np.array([7]))
+    labels = WindowLabels(sem, (sem > 0).astype(np.int32), np.ones((1, 4, 6), np.float32))
+    d, lab, gts = downscale(data, labels, [(sem[0], sem[0].astype(np.int32))], 0.5)
+    assert d.images.shape == (1, 2, 3, 3) and (d.images[0, :, 0] == 200).all() and (d.images[0, :, 1:] == 0).all()
+    np.testing.assert_allclose(d.intrinsics, [[5.0, 5.0, 1.5, 1.0]])
+    assert lab.semantic.shape == (1, 2, 3) and (lab.semantic[0, :, 2] == 2).all() and (lab.instance[0, :, :2] == 0).all()
+    assert gts[0][0].shape == (2, 3) and downscale(data, labels, gts, 1.0)[0] is data
