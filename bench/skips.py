@@ -3,9 +3,11 @@
 - empty space: occupancy-grid skipping on vs off (early termination on in both), rendering validation frames;
 - saturated rays: early termination on vs off (occupancy skipping on in both), the same frames;
 - windows without any thing detection: the panoptic phase of the window with its fruit detections
-  removed, semantic-only (panoptic.stuff_only_steps) vs the full phase it would otherwise run;
-- frames without fruit: assignments skipped during the window's panoptic phase, times the measured
-  cost of one frame's assignment (an estimate built from measured parts: the skipped work never runs);
+  removed, semantic-only (the defaults' share stuff_only_steps / steps of the steps) vs the full phase
+  it would otherwise run;
+- frames without fruit: the window with every other training frame's fruit detections removed; the
+  assignments skipped during its panoptic phase times the measured cost of one frame's assignment (an
+  estimate built from measured parts: the skipped work never runs);
 - unchanged stages: `pag all` on a tiny synthetic row, run once, then again with nothing changed
   (every stage's manifest matches, nothing reruns).
 
@@ -103,7 +105,10 @@ def run(seq: str = "synth_row", window: int = 0, steps: int = 300, frames: int =
                      "without_skip": off["s_per_image"], "samples_per_ray_with": on["samples_per_ray"],
                      "samples_per_ray_without": off["samples_per_ray"], "psnr_change_db": on["psnr"] - off["psnr"]})
     labels = load_labels(w, dets[dets.frame_id.isin(w.frame_id)], data_root)
-    pcfg = PanopticConfig(steps=panoptic_steps)
+    # the semantic-only phase keeps the defaults' share of steps (stuff_only_steps / steps)
+    default = PanopticConfig()
+    pcfg = PanopticConfig(steps=panoptic_steps,
+                          stuff_only_steps=max(1, round(panoptic_steps * default.stuff_only_steps / default.steps)))
     bare = _without_things(labels)
     t_skip, t_full = [], []
     for _ in range(repeats):
@@ -113,7 +118,12 @@ def run(seq: str = "synth_row", window: int = 0, steps: int = 300, frames: int =
         t_full.append(b.fit_s)
     rows.append({"skip": "window without thing detections (semantic-only phase)", "measure": "panoptic phase s",
                  "with_skip": median(t_skip), "without_skip": median(t_full)})
-    ph = fit_panoptic(model, labels, full.is_train, full.depths, pcfg)
+    # every other training frame without its fruit detections, so that frames without fruit occur
+    half = WindowLabels(labels.semantic.copy(), labels.instance.copy(), labels.confidence.copy())
+    drop = np.flatnonzero(full.is_train)[::2]
+    half.semantic[drop], half.instance[drop], half.confidence[drop] = (bare.semantic[drop], bare.instance[drop],
+                                                                       bare.confidence[drop])
+    ph = fit_panoptic(model, half, full.is_train, full.depths, pcfg)
     per_frame = ph.assign_s / max(ph.frames_assigned, 1)
     rows.append({"skip": "frames without fruit (no assignment)", "measure": "assignment s in the panoptic phase",
                  "with_skip": ph.assign_s, "without_skip": ph.assign_s + ph.frames_without_things * per_frame,
