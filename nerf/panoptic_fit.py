@@ -12,7 +12,9 @@ are detached anyway, so panoptic losses can move neither density nor poses), int
 semantic and instance probabilities, assigns each frame's thing segments to instance slots with
 linear_sum_assignment (nerf/assignment.py) and takes a step on the losses. With repeated-ID
 rejection on, a segment may only take the slots of the sliding window at its 3D position along the
-trajectory (its rays un-projected with the rendered depth).
+trajectory (its rays un-projected with the rendered depth); the slot memory adds a cost that draws a
+segment to the slot whose earlier segments lay where it lies (nerf/assignment.SlotMemory). Stuff labels
+weigh `stuff_confidence` in the semantic loss (a missed detection is weak evidence of no fruit).
 
 Samples whose colour weight is below `min_weight` do not reach the panoptic heads (they could move a
 ray's distribution by at most that weight); this is what makes the phase cheap.
