@@ -6,6 +6,7 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
+import numpy as np
 import pandas as pd
 
 from pipeline.io import atomic_write_bytes
@@ -54,6 +55,15 @@ def bar_plot(labels: list[str], values: list[float], ylabel: str, title: str, pa
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=100)
     plt.close(fig)
+
+
+def kept_frames(is_train: np.ndarray, n_val: int | None) -> np.ndarray:
+    """Indices of every training frame and of `n_val` validation frames spread evenly over the window
+    (None = all of them, 0 = none), in frame order: fewer renders in a benchmark."""
+    val = np.flatnonzero(~is_train)
+    if n_val is not None and n_val < len(val):
+        val = val[np.linspace(0, len(val) - 1, n_val).round().astype(int)] if n_val > 0 else val[:0]
+    return np.sort(np.concatenate([np.flatnonzero(is_train), val]))
 
 
 def window_rows(data_root: Path, seq: str, window: int) -> tuple[pd.DataFrame, pd.DataFrame]:

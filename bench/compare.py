@@ -36,7 +36,7 @@ import numpy as np
 import pandas as pd
 import torch
 
-from bench._common import write_parquet
+from bench._common import kept_frames, write_parquet
 from bench.ablation import ground_truth, score
 from nerf.baselines import PANOPTIC_LIFTING_LIKE, SEMANTIC_ONLY
 from nerf.config import NerfConfig, preset
@@ -51,15 +51,15 @@ DEFAULT = dict(colour_steps=300, panoptic_steps=200, val_frames=5)
 QUICK = dict(colour_steps=100, panoptic_steps=100, val_frames=3)
 
 
-def subset(data: WindowData, labels: WindowLabels, n_val: int) -> tuple[WindowData, WindowLabels]:
-    """Every training frame and `n_val` validation frames spread evenly (0 = all): fewer renders."""
-    val = np.flatnonzero(~data.is_train)
-    if n_val and n_val < len(val):
-        val = val[np.linspace(0, len(val) - 1, n_val).round().astype(int)]
-    keep = np.sort(np.concatenate([np.flatnonzero(data.is_train), val]))
-    d = WindowData(data.images[keep], data.depths[keep], data.intrinsics[keep], data.poses_c2w[keep],
-                   data.is_train[keep], data.frame_ids[keep])
-    return d, WindowLabels(labels.semantic[keep], labels.instance[keep], labels.confidence[keep])
+def scored_window(w: pd.DataFrame, dets: pd.DataFrame, gt_segments: pd.DataFrame, data_root: Path, n_val: int
+                  ) -> tuple[WindowData, WindowLabels, pd.DataFrame, list]:
+    """A window's frames, detector labels, rows and per-validation-frame ground truth, with every training
+    frame and `n_val` validation frames spread evenly (0 = all): fewer renders."""
+    data = load_window(w, data_root)
+    keep = kept_frames(data.is_train, n_val or None)
+    data, labels = data.take(keep), load_labels(w, dets, data_root).take(keep)
+    wk = w.iloc[keep].reset_index(drop=True)
+    return data, labels, wk, [ground_truth(wk.iloc[i], gt_segments, data_root) for i in np.flatnonzero(~data.is_train)]
 
 
 def fit_and_score(data: WindowData, labels: WindowLabels, gts: list, ncfg: NerfConfig, pcfg: PanopticConfig) -> dict:
@@ -130,11 +130,8 @@ def run(seq: str = "synth_row", windows_sel: list[int] | None = None, colour_ste
     base_p = PanopticConfig(steps=panoptic_steps)
     for wid in windows_sel or all_ids:
         w = windows[windows.window_id == wid].merge(frames, on="frame_id")
-        data, labels = subset(load_window(w, data_root), load_labels(w, dets, data_root), val_frames)
+        data, labels, wk, gts = scored_window(w, dets, gt_segments, data_root, val_frames)
         val = np.flatnonzero(~data.is_train)
-        keep_ids = set(data.frame_ids.tolist())
-        wk = w[w.frame_id.isin(keep_ids)].reset_index(drop=True)
-        gts = [ground_truth(wk.iloc[i], gt_segments, data_root) for i in val]
         common = {"window": wid, "val_frames": len(val), "threads": threads, "settings": settings, "seq": seq}
         det = score([(labels.semantic[i], labels.instance[i]) for i in val], gts)
         rows.append({"method": "detector input", "poses": "-", "status": "ok", "note": "", **det, **common})

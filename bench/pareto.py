@@ -27,13 +27,11 @@ import pandas as pd
 import torch
 
 from bench._common import window_rows, write_parquet
-from bench.ablation import ground_truth
-from bench.compare import fit_and_score, subset
+from bench.compare import fit_and_score, scored_window
 from nerf.config import preset
 from nerf.panoptic_fit import PanopticConfig, WindowLabels
 from nerf.trainer import WindowData
 from pipeline.io import read_table
-from stages.nerf_fit import load_labels, load_window
 
 # (name, preset the point starts from, changes); steps are scaled by the run mode
 POINTS: list[tuple[str, str, dict]] = [
@@ -95,9 +93,7 @@ def run(seq: str = "synth_row", window: int = 1, mode: str = "default", val_fram
     interim = data_root / "interim" / seq
     w, dets = window_rows(data_root, seq, window)
     gt_segments = read_table(interim / "gt_segments.parquet", "gt_segments")
-    data, labels = subset(load_window(w, data_root), load_labels(w, dets, data_root), m["val_frames"])
-    wk = w[w.frame_id.isin(set(data.frame_ids.tolist()))].reset_index(drop=True)
-    gts = [ground_truth(wk.iloc[i], gt_segments, data_root) for i in np.flatnonzero(~data.is_train)]
+    data, labels, _, gts = scored_window(w, dets, gt_segments, data_root, m["val_frames"])
     pcfg = PanopticConfig(steps=m["panoptic_steps"])
     rows = []
     for name, pre, change in (LONG_POINTS if mode == "long" else POINTS):

@@ -17,32 +17,24 @@ import numpy as np
 import pandas as pd
 import torch
 
-from bench._common import bar_plot, window_rows, write_parquet
+from bench._common import bar_plot, kept_frames, window_rows, write_parquet
 from nerf.config import preset
-from nerf.trainer import WindowData, fit_window, psnr
+from nerf.trainer import fit_window, psnr
 from stages.nerf_fit import load_window
-
-
-def _subset(data: WindowData, n_val: int) -> WindowData:
-    """The window with only `n_val` of its validation frames (spread evenly): fewer renders."""
-    val = np.flatnonzero(~data.is_train)
-    keep_val = val[np.linspace(0, len(val) - 1, min(n_val, len(val))).round().astype(int)] if len(val) else val
-    keep = np.sort(np.concatenate([np.flatnonzero(data.is_train), keep_val]))
-    return WindowData(data.images[keep], data.depths[keep], data.intrinsics[keep], data.poses_c2w[keep],
-                      data.is_train[keep], data.frame_ids[keep])
 
 
 def run(seq: str = "synth_row", window: int = 0, steps: int = 300, frames: int = 3, threads: int = 2,
         data_root: Path = Path("data"), out_dir: Path = Path("data/bench")) -> pd.DataFrame:
     torch.set_num_threads(threads)
     w, _ = window_rows(data_root, seq, window)
-    data = _subset(load_window(w, data_root), frames)
+    data = load_window(w, data_root)
+    data = data.take(kept_frames(data.is_train, frames))
     cfg = preset("cpu", steps=steps)
     res = fit_window(data, cfg)
     model = res.model
     # time per training step of each mode: a few more steps from scratch, interleaved (median of 3 short fits)
     step_s: dict[bool, list[float]] = {True: [], False: []}
-    tiny = _subset(data, 0)  # train frames only: no renders at the end
+    tiny = data.take(kept_frames(data.is_train, 0))  # train frames only: no renders at the end
     for _ in range(3):
         for skip in (True, False):
             r = fit_window(tiny, replace(cfg, steps=12, skip_empty=skip,

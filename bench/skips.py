@@ -27,8 +27,7 @@ import numpy as np
 import pandas as pd
 import torch
 
-from bench._common import bar_plot, median, window_rows, write_parquet
-from bench.render import _subset
+from bench._common import bar_plot, kept_frames, median, window_rows, write_parquet
 from nerf.config import preset
 from nerf.panoptic_fit import PanopticConfig, WindowLabels, fit_panoptic
 from nerf.trainer import fit_window, psnr
@@ -96,7 +95,7 @@ def run(seq: str = "synth_row", window: int = 0, steps: int = 300, frames: int =
     res = fit_window(full, preset("cpu", steps=steps), render_val=False)
     model = res.model
     rows = []
-    r = _render_modes(model, _subset(full, frames), repeats)
+    r = _render_modes(model, full.take(kept_frames(full.is_train, frames)), repeats)
     on = r["all skips"]
     for name, what in (("no occupancy skipping", "empty space (occupancy grid)"),
                        ("no early termination", "saturated rays (early termination)")):

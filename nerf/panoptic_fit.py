@@ -122,6 +122,10 @@ class WindowLabels:
                              f"{self.instance.shape}, confidence {self.confidence.shape}")
         self.confidence = np.nan_to_num(self.confidence.astype(np.float32), nan=0.0, posinf=1.0, neginf=0.0).clip(0, 1)
 
+    def take(self, idx: np.ndarray) -> "WindowLabels":
+        """The labels of the frames `idx` only, in that order."""
+        return WindowLabels(self.semantic[idx], self.instance[idx], self.confidence[idx])
+
 
 @dataclass
 class PanopticResult:

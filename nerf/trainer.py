@@ -52,6 +52,11 @@ class WindowData:
         if not np.isfinite(self.poses_c2w).all():
             raise ValueError("a window's initial poses contain non-finite values")
 
+    def take(self, idx: np.ndarray) -> "WindowData":
+        """The window with only the frames `idx` (indices into its frames), in that order."""
+        return WindowData(self.images[idx], self.depths[idx], self.intrinsics[idx], self.poses_c2w[idx],
+                          self.is_train[idx], self.frame_ids[idx])
+
 
 @dataclass
 class Scene:

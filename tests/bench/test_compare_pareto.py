@@ -46,3 +46,12 @@ def test_pareto_image_scale_halves_images_labels_truth_and_intrinsics():
     np.testing.assert_allclose(d.intrinsics, [[5.0, 5.0, 1.5, 1.0]])
     assert lab.semantic.shape == (1, 2, 3) and (lab.semantic[0, :, 2] == 2).all() and (lab.instance[0, :, :2] == 0).all()
     assert gts[0][0].shape == (2, 3) and downscale(data, labels, gts, 1.0)[0] is data
+
+
+def test_kept_frames_keeps_every_training_frame_and_spreads_the_validation_ones():
+    from bench._common import kept_frames
+
+    is_train = np.array([0, 1, 0, 1, 0, 1, 0, 1, 0], bool)
+    assert kept_frames(is_train, None).tolist() == list(range(9))
+    assert kept_frames(is_train, 0).tolist() == [1, 3, 5, 7]
+    assert kept_frames(is_train, 2).tolist() == [0, 1, 3, 5, 7, 8]
