@@ -1,6 +1,13 @@
+import os
+import subprocess
+import sys
+from pathlib import Path
+
 import pytest
 
 from pipeline import parallel
+
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def square_or_fail(x):
@@ -15,3 +22,41 @@ def test_map_tasks_runs_all_and_keeps_failures_separate():
     out = parallel.map_tasks(square_or_fail, {str(i): i for i in range(4)}, n_workers=2, show_progress=False)
     assert {k: o.result for k, o in out.items() if o.error is None} == {"0": 0, "1": 1, "2": 4}
     assert isinstance(out["3"].error, FloatingPointError) and "step 7" in str(out["3"].error)
+
+
+def env_of_task(_):
+    import os
+
+    return os.environ.get("MALLOC_TRIM_THRESHOLD_")
+
+
+@pytest.mark.slow
+def test_local_workers_do_not_get_dask_malloc_trim_setting():
+    out = parallel.map_tasks(env_of_task, {"a": 0}, n_workers=1, show_progress=False)
+    assert out["a"].error is None and out["a"].result is None
+
+
+FAULTS_SCRIPT = """
+import resource, sys
+import numpy as np
+from pipeline.parallel import keep_freed_memory
+if sys.argv[1] == "keep":
+    assert keep_freed_memory()
+np.ones(1 << 18)  # first 2 MiB allocation: faults either way (below numpy's 4 MiB huge-page size)
+before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+for _ in range(20):
+    np.ones(1 << 18)
+print(resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before)
+"""
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc malloc settings")
+def test_keep_freed_memory_stops_page_faults_on_every_large_allocation():
+    # a process started like a Dask worker (MALLOC_TRIM_THRESHOLD_ set): every 2 MiB array is mmap'ed anew
+    env = {**os.environ, "MALLOC_TRIM_THRESHOLD_": "65536"}
+    faults = {mode: int(subprocess.run([sys.executable, "-c", FAULTS_SCRIPT, mode], env=env, check=True,
+                                       capture_output=True, text=True, cwd=ROOT).stdout)
+              for mode in ("plain", "keep")}
+    pages = 20 * (2 << 20) // 4096
+    assert faults["plain"] > pages // 2
+    assert faults["keep"] < pages // 10
