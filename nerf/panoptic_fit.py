@@ -93,6 +93,11 @@ class PanopticConfig:
     """Adam learning rate of the semantic and instance heads."""
     min_weight: float = 1e-2
     """samples with a smaller colour weight skip the panoptic heads."""
+    grow_threshold: float = 0.3
+    """post-processing (hysteresis): a pixel whose fruit probability exceeds this, though not the stuff
+    classes', joins the fruit instance its most likely slot names when it touches that instance's sure
+    pixels. Recovers the weakly labelled rims of fruits cut by the image border or half hidden, without
+    creating new instances from weak evidence (1 = off)."""
     min_segment_px: int = 12
     """post-processing: rendered instances smaller than this (after the 3x3 opening) are dropped."""
     n_classes: int = 5
@@ -103,6 +108,8 @@ class PanopticConfig:
     def __post_init__(self) -> None:
         if not 0.0 <= self.stuff_confidence <= 1.0:
             raise ValueError(f"panoptic.stuff_confidence must lie in [0, 1], got {self.stuff_confidence}")
+        if not 0.0 <= self.grow_threshold <= 1.0:
+            raise ValueError(f"panoptic.grow_threshold must lie in [0, 1], got {self.grow_threshold}")
 
 
 @dataclass
@@ -434,19 +441,30 @@ def render_panoptic(model, pres: PanopticResult, i: int | None = None, c2w: Tens
 def panoptic_labels(p_sem: np.ndarray, p_inst: np.ndarray, cfg: PanopticConfig) -> tuple[np.ndarray, np.ndarray]:
     """Per-pixel distributions [H, W, D] / [H, W, N] -> semantic uint8 and instance int32 images.
 
-    Thing pixels take the most likely thing slot (1..N-1); then post-processing: each instance mask
+    A pixel is a thing when the fruit classes together are more likely than each stuff class (the
+    ripeness classes split a fruit's probability three ways, so a plain argmax over the five classes
+    calls a fruit of uncertain ripeness "plant"); it then takes the most likely thing class and the most
+    likely thing slot (1..N-1). Instances grow into touching pixels of the same slot whose fruit
+    probability exceeds cfg.grow_threshold (hysteresis). Post-processing: each instance mask
     gets one 3x3 opening (erosion then dilation; the image border does not erode, so a fruit cut by it
     keeps its thin visible strip), instances smaller than cfg.min_segment_px are dropped,
     an instance's pixels take its majority thing class, and dropped pixels take their most likely
     stuff class with instance 0."""
     things = np.array(cfg.thing_classes)
     stuff = np.array([c for c in range(p_sem.shape[-1]) if c not in set(cfg.thing_classes)])
-    sem = p_sem.argmax(-1)
-    stuff_sem = stuff[p_sem[..., stuff].argmax(-1)] if stuff.size else np.zeros_like(sem)
-    is_thing = np.isin(sem, things)
+    stuff_sem = stuff[p_sem[..., stuff].argmax(-1)] if stuff.size else np.zeros(p_sem.shape[:-1], np.int64)
+    if things.size:
+        is_thing = p_sem[..., things].sum(-1) >= (p_sem[..., stuff].max(-1) if stuff.size else 0.0)
+        sem = np.where(is_thing, things[p_sem[..., things].argmax(-1)], stuff_sem)
+    else:
+        is_thing, sem = np.zeros(stuff_sem.shape, bool), stuff_sem
     if not cfg.instances:  # semantic only: thing pixels keep their class, no instance ids
         return sem.astype(np.uint8), np.zeros(sem.shape, np.int32)
-    inst = np.where(is_thing, p_inst[..., 1:].argmax(-1) + 1, 0).astype(np.int32)
+    slot = p_inst[..., 1:].argmax(-1) + 1
+    if things.size and cfg.grow_threshold < 1.0:
+        is_thing = grow_instances(is_thing, slot, p_sem[..., things].sum(-1) > cfg.grow_threshold)
+        sem = np.where(is_thing, things[p_sem[..., things].argmax(-1)], stuff_sem)
+    inst = np.where(is_thing, slot, 0).astype(np.int32)
     out_sem = np.where(is_thing, sem, stuff_sem).astype(np.uint8)
     out_inst = np.zeros_like(inst)
     kernel = np.ones((3, 3), bool)
@@ -462,6 +480,19 @@ def panoptic_labels(p_sem: np.ndarray, p_inst: np.ndarray, cfg: PanopticConfig) 
     dropped = is_thing & (out_inst == 0)
     out_sem[dropped] = stuff_sem[dropped]
     return out_sem, out_inst
+
+
+def grow_instances(sure: np.ndarray, slot: np.ndarray, weak: np.ndarray) -> np.ndarray:
+    """Hysteresis: `sure` [H, W] plus every 8-connected region of `weak` pixels of one slot that touches a
+    sure pixel of that slot."""
+    out = sure.copy()
+    eight = np.ones((3, 3), bool)
+    for sl_id in np.unique(slot[sure]):
+        regions, n = ndimage.label((weak | sure) & (slot == sl_id), eight)
+        if n:
+            touching = np.unique(regions[sure & (slot == sl_id)])
+            out |= np.isin(regions, touching[touching > 0])
+    return out
 
 
 def load_panoptic(state: dict, model, device: str = "cpu") -> PanopticResult:

@@ -136,6 +136,45 @@ def test_fruit_cut_by_the_image_border_keeps_its_thin_strip():
     assert (inst[:, 2:] != 1).all() and (inst == 2).sum() == 0
 
 
+def test_fruit_of_uncertain_ripeness_is_a_fruit_not_plant():
+    # the three ripeness classes share a fruit's probability: each is below 'plant', together above it
+    cfg = PanopticConfig(min_segment_px=1, grow_threshold=1.0)
+    p_sem = np.zeros((6, 6, 5))
+    p_sem[..., 1] = 1.0
+    p_sem[1:5, 1:5] = [0.05, 0.35, 0.25, 0.15, 0.2]
+    p_inst = np.zeros((6, 6, 3))
+    p_inst[..., 0] = 1.0
+    p_inst[1:5, 1:5] = [0.2, 0.7, 0.1]
+    sem, inst = panoptic_labels(p_sem, p_inst, cfg)
+    assert (sem[1:5, 1:5] == 2).all() and (inst[1:5, 1:5] == 1).all()
+    assert (sem[0] == 1).all() and (inst[0] == 0).all()
+
+
+def test_weak_rim_joins_the_touching_fruit_but_weak_evidence_alone_stays_stuff():
+    h, w = 16, 16
+    p_sem = np.zeros((h, w, 5))
+    p_sem[..., 1] = 1.0
+    p_sem[4:10, 4:10] = [0, 0.2, 0, 0, 0.8]        # the sure core of a red fruit
+    p_sem[4:10, 10:12] = [0, 0.6, 0, 0, 0.4]       # its rim: fruit probability 0.4, under 'plant'
+    p_sem[12:16, 12:16] = [0, 0.6, 0, 0, 0.4]      # the same weak evidence away from any fruit
+    p_inst = np.zeros((h, w, 4))
+    p_inst[..., 0] = 1.0
+    p_inst[4:10, 4:12] = [0.1, 0, 0.9, 0]
+    p_inst[12:16, 12:16] = [0.1, 0, 0.9, 0]
+    on = panoptic_labels(p_sem, p_inst, PanopticConfig(min_segment_px=4, grow_threshold=0.3))
+    off = panoptic_labels(p_sem, p_inst, PanopticConfig(min_segment_px=4, grow_threshold=1.0))
+    for sem, inst in (on, off):
+        assert (inst[4:10, 4:10] == 2).all() and (sem[4:10, 4:10] == 4).all()
+        assert (inst[12:, 12:] == 0).all() and (sem[12:, 12:] == 1).all()
+    assert (on[1][4:10, 10:12] == 2).all() and (on[0][4:10, 10:12] == 4).all()
+    assert (off[1][4:10, 10:12] == 0).all()
+
+
+def test_grow_threshold_outside_0_1_is_a_clear_error():
+    with pytest.raises(ValueError, match="grow_threshold"):
+        PanopticConfig(grow_threshold=-0.1)
+
+
 def test_stuff_confidence_outside_0_1_is_a_clear_error():
     with pytest.raises(ValueError, match="stuff_confidence"):
         PanopticConfig(stuff_confidence=1.5)
