@@ -98,6 +98,9 @@ class PanopticConfig:
     classes', joins the fruit instance its most likely slot names when it touches that instance's sure
     pixels. Recovers the weakly labelled rims of fruits cut by the image border or half hidden, without
     creating new instances from weak evidence (1 = off)."""
+    grow_depth_m: float = 0.02
+    """post-processing: a pixel an instance grows into must have a rendered depth within this of the
+    instance's sure pixels' depth range, so a rim never spreads onto the leaf in front or the wall behind."""
     min_segment_px: int = 12
     """post-processing: rendered instances smaller than this (after the 3x3 opening) are dropped."""
     n_classes: int = 5
@@ -110,6 +113,8 @@ class PanopticConfig:
             raise ValueError(f"panoptic.stuff_confidence must lie in [0, 1], got {self.stuff_confidence}")
         if not 0.0 <= self.grow_threshold <= 1.0:
             raise ValueError(f"panoptic.grow_threshold must lie in [0, 1], got {self.grow_threshold}")
+        if not self.grow_depth_m >= 0.0:
+            raise ValueError(f"panoptic.grow_depth_m must be >= 0, got {self.grow_depth_m}")
 
 
 @dataclass
@@ -432,20 +437,23 @@ def render_panoptic(model, pres: PanopticResult, i: int | None = None, c2w: Tens
         n_eval += ks.n_evaluated
     p_sem_img = torch.cat(p_sem).reshape(h, w, -1).cpu().numpy()
     p_inst_img = torch.cat(p_inst).reshape(h, w, -1).cpu().numpy()
-    sem, inst = panoptic_labels(p_sem_img, p_inst_img, cfg)
-    return {"rgb": torch.cat(rgb).reshape(h, w, 3), "depth": torch.cat(depth).reshape(h, w),
+    depth_img = torch.cat(depth).reshape(h, w)
+    sem, inst = panoptic_labels(p_sem_img, p_inst_img, cfg, depth_img.cpu().numpy())
+    return {"rgb": torch.cat(rgb).reshape(h, w, 3), "depth": depth_img,
             "opacity": torch.cat(opac).reshape(h, w), "semantic": sem, "instance": inst,
             "samples_per_ray": n_eval / (h * w)}
 
 
-def panoptic_labels(p_sem: np.ndarray, p_inst: np.ndarray, cfg: PanopticConfig) -> tuple[np.ndarray, np.ndarray]:
+def panoptic_labels(p_sem: np.ndarray, p_inst: np.ndarray, cfg: PanopticConfig,
+                    depth: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Per-pixel distributions [H, W, D] / [H, W, N] -> semantic uint8 and instance int32 images.
 
     A pixel is a thing when the fruit classes together are more likely than each stuff class (the
     ripeness classes split a fruit's probability three ways, so a plain argmax over the five classes
     calls a fruit of uncertain ripeness "plant"); it then takes the most likely thing class and the most
     likely thing slot (1..N-1). Instances grow into touching pixels of the same slot whose fruit
-    probability exceeds cfg.grow_threshold (hysteresis). Post-processing: each instance mask
+    probability exceeds cfg.grow_threshold (hysteresis) and, given the rendered `depth` [H, W], whose depth
+    lies within cfg.grow_depth_m of the instance's sure pixels. Post-processing: each instance mask
     gets one 3x3 opening (erosion then dilation; the image border does not erode, so a fruit cut by it
     keeps its thin visible strip), instances smaller than cfg.min_segment_px are dropped,
     an instance's pixels take its majority thing class, and dropped pixels take their most likely
@@ -462,7 +470,8 @@ def panoptic_labels(p_sem: np.ndarray, p_inst: np.ndarray, cfg: PanopticConfig) 
         return sem.astype(np.uint8), np.zeros(sem.shape, np.int32)
     slot = p_inst[..., 1:].argmax(-1) + 1
     if things.size and cfg.grow_threshold < 1.0:
-        is_thing = grow_instances(is_thing, slot, p_sem[..., things].sum(-1) > cfg.grow_threshold)
+        is_thing = grow_instances(is_thing, slot, p_sem[..., things].sum(-1) > cfg.grow_threshold, depth,
+                                  cfg.grow_depth_m)
         sem = np.where(is_thing, things[p_sem[..., things].argmax(-1)], stuff_sem)
     inst = np.where(is_thing, slot, 0).astype(np.int32)
     out_sem = np.where(is_thing, sem, stuff_sem).astype(np.uint8)
@@ -482,15 +491,22 @@ def panoptic_labels(p_sem: np.ndarray, p_inst: np.ndarray, cfg: PanopticConfig) 
     return out_sem, out_inst
 
 
-def grow_instances(sure: np.ndarray, slot: np.ndarray, weak: np.ndarray) -> np.ndarray:
+def grow_instances(sure: np.ndarray, slot: np.ndarray, weak: np.ndarray, depth: np.ndarray | None = None,
+                   depth_margin_m: float = 0.0) -> np.ndarray:
     """Hysteresis: `sure` [H, W] plus every 8-connected region of `weak` pixels of one slot that touches a
-    sure pixel of that slot."""
+    sure pixel of that slot. With `depth`, a weak pixel must also lie within `depth_margin_m` of the depth
+    range (5th-95th percentile) of the slot's sure pixels: a fruit's rim, not the leaf or the wall behind."""
     out = sure.copy()
     eight = np.ones((3, 3), bool)
     for sl_id in np.unique(slot[sure]):
-        regions, n = ndimage.label((weak | sure) & (slot == sl_id), eight)
+        core = sure & (slot == sl_id)
+        cand = weak & (slot == sl_id)
+        if depth is not None:
+            lo, hi = np.percentile(depth[core], [5, 95])
+            cand &= (depth >= lo - depth_margin_m) & (depth <= hi + depth_margin_m)
+        regions, n = ndimage.label(cand | core, eight)
         if n:
-            touching = np.unique(regions[sure & (slot == sl_id)])
+            touching = np.unique(regions[core])
             out |= np.isin(regions, touching[touching > 0])
     return out
 

@@ -42,6 +42,10 @@ class Config:
     max_radius_m: float = 0.15
     """a surface fit with a larger radius, or a centre farther than this from the points' median, is
     rejected (a nearly flat patch); without any fit the fruit gets the median as centre and the PCA diameter."""
+    max_fit_extent_ratio: float = 1.5
+    """a surface fit whose diameter (or length) exceeds this multiple of the largest extent of the points is
+    rejected too: it extrapolates a whole fruit from a small cap (a fruit seen only as a sliver over or past
+    another one), where a seen half of a fruit spans about its full diameter."""
 
     def __post_init__(self) -> None:
         if not self.max_depth_m > 0:
@@ -53,6 +57,8 @@ class Config:
                              "max_points_per_view >= 1")
         if not self.max_radius_m > 0:
             raise ValueError(f"fruit_count.max_radius_m must be > 0, got {self.max_radius_m}")
+        if not self.max_fit_extent_ratio >= 1:
+            raise ValueError(f"fruit_count.max_fit_extent_ratio must be >= 1, got {self.max_fit_extent_ratio}")
 
 
 def fit_sphere(points: np.ndarray) -> tuple[np.ndarray, float]:
@@ -124,7 +130,8 @@ def measure(points: np.ndarray, cfg: Config) -> dict:
     out.update(axis1_m=ext[0], axis2_m=ext[1], axis3_m=ext[2], diameter_pca_m=ext[1],
                height_m=float(np.percentile(inl[:, 2], 97.5) - np.percentile(inl[:, 2], 2.5)))
     def plausible(c: np.ndarray, r: float) -> bool:
-        return bool(np.all(np.isfinite(c)) and 0 < r <= cfg.max_radius_m and np.linalg.norm(c - med) <= cfg.max_radius_m)
+        return bool(np.all(np.isfinite(c)) and 0 < r <= cfg.max_radius_m and np.linalg.norm(c - med) <= cfg.max_radius_m
+                    and 2 * r <= cfg.max_fit_extent_ratio * ext[0])
 
     centres = {}
     c, r = fit_sphere(inl)

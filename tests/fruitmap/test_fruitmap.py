@@ -180,6 +180,19 @@ def test_surface_fits_recover_known_shapes():
     assert fruit_count.principal_extents(sph)[1] < 2 * a  # extents of a half-seen surface are biased low
 
 
+def test_a_fit_that_extrapolates_a_whole_fruit_from_a_small_cap_is_rejected():
+    # a 3 cm patch of a 10 cm-radius sphere: the fits find that sphere, a 20 cm 'fruit' from 3 cm of surface
+    rng = np.random.default_rng(1)
+    th, ph = rng.uniform(0, 0.15, 600), rng.uniform(0, 2 * np.pi, 600)
+    pts = np.array([0.5, 0.4, 0.9]) + 0.1 * np.c_[np.sin(th) * np.cos(ph), np.sin(th) * np.sin(ph), -np.cos(th)]
+    loose = fruit_count.measure(pts, fruit_count.Config(max_fit_extent_ratio=100.0))
+    assert loose["diameter_sphere_m"] == pytest.approx(0.2, abs=0.01)
+    out = fruit_count.measure(pts, fruit_count.Config())
+    assert out["diameter_sphere_m"] is None and out["diameter_spheroid_m"] is None
+    assert out["diameter_m"] == out["diameter_pca_m"] < 0.04
+    assert np.allclose([out["x_m"], out["y_m"], out["z_m"]], np.median(pts, 0), atol=0.005)
+
+
 # -- outputs readable elsewhere --------------------------------------------------------------------------
 
 @pytest.mark.parametrize("table", ["panoptic_frames", "fruit_slots", "fruits", "counts", "evaluation"])

@@ -170,6 +170,23 @@ def test_weak_rim_joins_the_touching_fruit_but_weak_evidence_alone_stays_stuff()
     assert (off[1][4:10, 10:12] == 0).all()
 
 
+def test_growth_stops_at_a_depth_jump():
+    p_sem = np.zeros((10, 16, 5))
+    p_sem[..., 1] = 1.0
+    p_sem[2:8, 2:8] = [0, 0.2, 0, 0, 0.8]          # sure core at 0.60 m
+    p_sem[2:8, 8:14] = [0, 0.6, 0, 0, 0.4]         # weak rim: columns 8-10 on the fruit, 11-13 on the wall
+    p_inst = np.zeros((10, 16, 3))
+    p_inst[..., 0] = 1.0
+    p_inst[2:8, 2:14] = [0.1, 0.9, 0]
+    depth = np.full((10, 16), 1.5)
+    depth[2:8, 2:11] = 0.6 + 0.001 * np.arange(9)
+    cfg = PanopticConfig(min_segment_px=4, grow_threshold=0.3, grow_depth_m=0.02)
+    _, inst = panoptic_labels(p_sem, p_inst, cfg, depth)
+    assert (inst[2:8, 2:11] == 1).all() and (inst[2:8, 11:] == 0).all()
+    _, no_depth = panoptic_labels(p_sem, p_inst, cfg)
+    assert (no_depth[2:8, 2:14] == 1).all()
+
+
 def test_grow_threshold_outside_0_1_is_a_clear_error():
     with pytest.raises(ValueError, match="grow_threshold"):
         PanopticConfig(grow_threshold=-0.1)
