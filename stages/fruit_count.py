@@ -42,10 +42,11 @@ class Config:
     max_radius_m: float = 0.15
     """a surface fit with a larger radius, or a centre farther than this from the points' median, is
     rejected (a nearly flat patch); without any fit the fruit gets the median as centre and the PCA diameter."""
-    max_fit_extent_ratio: float = 1.5
+    max_fit_extent_ratio: float = 2.0
     """a surface fit whose diameter (or length) exceeds this multiple of the largest extent of the points is
     rejected too: it extrapolates a whole fruit from a small cap (a fruit seen only as a sliver over or past
-    another one), where a seen half of a fruit spans about its full diameter."""
+    another one), where a seen half of a fruit spans about its full diameter. Default row: the kept fits lie
+    at 1.0-1.25 times the extent; a fruit seen only as a sliver fitted 3 times its extent."""
 
     def __post_init__(self) -> None:
         if not self.max_depth_m > 0:
