@@ -5,11 +5,13 @@ from schemas import col, table_schema
 
 SCHEMA = table_schema(
     "fruits",
-    "One row per row-level fruit (the instance id of the fused panoptic PNGs). Positions are in the world "
-    "frame of frames.parquet (x along the row, y left, z up). Sizes come from the fruit's visible surface: "
-    "its pixels in every fused frame unprojected with the NeRF depth render and the window's refined pose, "
-    "outliers rejected by a MAD test on the distance to the median. Fruits whose median viewing depth is "
-    "beyond fruit_count.max_depth_m (the far row) have near_row = false and are not counted in counts.parquet.",
+    "One row per row-level fruit (the instance id of the fused panoptic PNGs). Positions are in the row frame "
+    "(the world frame of frames.parquet near the row start, windows chained through the frames they share; "
+    "x along the row, y left, z up). Sizes come from the fruit's visible surface: its pixels in every fused "
+    "frame unprojected with the NeRF depth render and the frame's row-frame pose (panoptic_frames), outliers "
+    "rejected by a MAD test on the distance to the median. Fruits whose median viewing depth is beyond "
+    "fruit_count.max_depth_m (the far row) have near_row = false, and fragments (seen in too few frames or "
+    "with too few points) counted = false; neither is in counts.parquet.",
     col("fruit_id", pa.int32(), "row-level fruit id (1..n, increasing along the row)"),
     col("class_id", pa.int32(), "ripeness class (pipeline/classes.py): majority over the frames it is seen in"),
     col("class_name", pa.string(), "name of class_id"),
@@ -32,7 +34,9 @@ SCHEMA = table_schema(
     col("height_m", pa.float64(), "vertical extent (2.5-97.5 percentile range of z): the fruit length of a "
         "hanging fruit", "m", nullable=True),
     col("median_depth_m", pa.float64(), "median camera depth of the fruit's pixels over its frames", "m"),
-    col("near_row", pa.bool_(), "median_depth_m <= fruit_count.max_depth_m (counted); false = far row"),
+    col("near_row", pa.bool_(), "median_depth_m <= fruit_count.max_depth_m; false = far row (not counted)"),
+    col("counted", pa.bool_(), "in counts.parquet: near_row, seen in >= fruit_count.min_count_frames fused frames "
+        "and with >= fruit_count.min_count_points points (false = far row or a fragment)"),
     col("n_points", pa.int32(), "3D points kept after outlier rejection", "points"),
     col("n_outliers", pa.int32(), "3D points rejected by the MAD test", "points"),
     col("n_frames", pa.int32(), "fused frames the fruit appears in", "frames"),

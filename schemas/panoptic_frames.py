@@ -19,4 +19,12 @@ SCHEMA = table_schema(
     col("rgb_path", pa.string(), "the window's NeRF colour render of this frame, relative to data/"),
     col("depth_path", pa.string(), "the window's NeRF depth render (16-bit mm), relative to data/"),
     col("n_fruits", pa.int32(), "distinct fruit ids in the frame's instance PNG"),
+    col("tx", pa.float64(), "camera position x in the row frame (the window's refined pose, aligned to the "
+        "first window through the frames windows share; the pose fruit_count un-projects this frame with)", "m"),
+    col("ty", pa.float64(), "camera position y in the row frame", "m"),
+    col("tz", pa.float64(), "camera position z in the row frame", "m"),
+    col("qx", pa.float64(), "camera-to-world rotation quaternion x (row frame)"),
+    col("qy", pa.float64(), "camera-to-world rotation quaternion y (row frame)"),
+    col("qz", pa.float64(), "camera-to-world rotation quaternion z (row frame)"),
+    col("qw", pa.float64(), "camera-to-world rotation quaternion w (row frame)"),
 )

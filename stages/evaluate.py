@@ -189,18 +189,23 @@ def match_fruits(pred: np.ndarray, gt: np.ndarray, max_m: float) -> list[tuple[i
     return [(int(i), int(j), float(d[i, j])) for i, j in zip(r, c) if d[i, j] <= max_m]
 
 
-def to_ground_truth_frame(fruits: pd.DataFrame, frames: pd.DataFrame, gt_poses: pd.DataFrame | None) -> np.ndarray:
-    """Fruit centres [F, 3] moved from the map's (odometry) world frame into the ground truth's, each through
-    the camera of one frame that saw it (the frame nearest the middle of first_frame_id..last_frame_id):
-    p_gt = T_gt(f) T_odo(f)^-1 p. The row map drifts with the odometry (centimetres over a row); this local
-    alignment scores each fruit where the robot thought it was when it saw it, as a tape measure from the
-    camera would. Without ground-truth poses the centres are returned unchanged."""
+def to_ground_truth_frame(fruits: pd.DataFrame, frames: pd.DataFrame, gt_poses: pd.DataFrame | None,
+                          map_poses: pd.DataFrame | None = None) -> np.ndarray:
+    """Fruit centres [F, 3] moved from the map's world frame into the ground truth's, each through the camera
+    of one frame that saw it (the frame nearest the middle of first_frame_id..last_frame_id):
+    p_gt = T_gt(f) T_map(f)^-1 p, with T_map the pose the map placed frame f with (`map_poses`:
+    panoptic_frames' row-frame poses; else the odometry pose in `frames`). The row map drifts with the
+    odometry (centimetres over a row); this local alignment scores each fruit where the robot thought it was
+    when it saw it, as a tape measure from the camera would. Without ground-truth poses the centres are
+    returned unchanged."""
     xyz = fruits[["x_m", "y_m", "z_m"]].to_numpy(np.float64)
     if gt_poses is None or len(fruits) == 0:
         return xyz
     cols = ["tx", "ty", "tz", "qx", "qy", "qz", "qw"]
-    both = frames[["frame_id", *cols]].reset_index(drop=True).merge(gt_poses[["frame_id", *cols]], on="frame_id",
-                                                                     suffixes=("_odo", "_gt"))
+    placed = frames[["frame_id", *cols]].reset_index(drop=True)
+    if map_poses is not None and len(map_poses) and set(cols) <= set(map_poses.columns):
+        placed = map_poses[["frame_id", *cols]].reset_index(drop=True)
+    both = placed.merge(gt_poses[["frame_id", *cols]], on="frame_id", suffixes=("_odo", "_gt"))
     if both.empty:
         return xyz
     fids = both.frame_id.to_numpy()
@@ -227,7 +232,7 @@ def row_scores(inputs: dict, gt: GroundTruth, gt_fruits: pd.DataFrame | None, gt
     out.update(fused.metrics(cfg.min_frames_id))
     if gt_fruits is not None:
         fruits = inputs["fruits"]
-        pred = fruits[fruits.near_row.astype(bool)]
+        pred = fruits[fruits["counted" if "counted" in fruits else "near_row"].astype(bool)]
         seg = inputs["gt_segments"]
         seg = seg[seg.kept.astype(bool) & seg.frame_id.isin(pf.frame_id)]
         px = seg.groupby("instance_id").area_px.sum()
@@ -240,7 +245,7 @@ def row_scores(inputs: dict, gt: GroundTruth, gt_fruits: pd.DataFrame | None, gt
                    count_gt_near_row_all=float(len(near_ids)))
         gxyz = g[["x_m", "y_m", "z_m"]].to_numpy(np.float64)
         raw = pred[["x_m", "y_m", "z_m"]].to_numpy(np.float64)
-        aligned = to_ground_truth_frame(pred, gt.frames, gt_poses)
+        aligned = to_ground_truth_frame(pred, gt.frames, gt_poses, pf)
         raw_matches = match_fruits(raw, gxyz, cfg.match_max_distance_m)
         out["fruits_matched_unaligned"] = float(len(raw_matches))
         matches = match_fruits(aligned, gxyz, cfg.match_max_distance_m)

@@ -17,7 +17,7 @@ from pipeline.images import ImageError, read_label
 from pipeline.stage import StageContext
 from stages.panoptic_fusion import DEPTH_SCALE_M, id_colours, robust_centre, subsample, unproject
 
-INPUTS = ("frames", "window_poses", "nerf", "panoptic_frames", "panoptic", "fruit_slots")
+INPUTS = ("frames", "nerf", "panoptic_frames", "panoptic", "fruit_slots")
 OUTPUTS = ("fruits", "counts", "fruit_map")
 
 
@@ -42,6 +42,11 @@ class Config:
     max_radius_m: float = 0.15
     """a surface fit with a larger radius, or a centre farther than this from the points' median, is
     rejected (a nearly flat patch); without any fit the fruit gets the median as centre and the PCA diameter."""
+    min_count_frames: int = 2
+    """a fruit seen in fewer fused frames is a fragment (a stray piece of a slot, a one-frame duplicate): listed
+    in fruits.parquet with counted = false, not counted."""
+    min_count_points: int = 100
+    """a fruit with fewer 3D points over the row is a fragment too (counted = false)."""
     max_fit_extent_ratio: float = 2.0
     """a surface fit whose diameter (or length) exceeds this multiple of the largest extent of the points is
     rejected too: it extrapolates a whole fruit from a small cap (a fruit seen only as a sliver over or past
@@ -53,6 +58,8 @@ class Config:
             raise ValueError(f"fruit_count.max_depth_m must be > 0, got {self.max_depth_m}")
         if not self.mad_k > 0:
             raise ValueError(f"fruit_count.mad_k must be > 0, got {self.mad_k}")
+        if self.min_count_frames < 1 or self.min_count_points < 0:
+            raise ValueError("fruit_count.min_count_frames must be >= 1 and min_count_points >= 0")
         if self.min_points < 4 or self.max_points_per_view < 1:
             raise ValueError("fruit_count.min_points must be >= 4 (a sphere has 4 parameters) and "
                              "max_points_per_view >= 1")
@@ -159,7 +166,6 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
 
     frames: pd.DataFrame = inputs["frames"].set_index("frame_id", drop=False)
     pf: pd.DataFrame = inputs["panoptic_frames"]
-    poses = inputs["window_poses"].set_index(["window_id", "frame_id"])
     slots: pd.DataFrame = inputs["fruit_slots"]
     points: dict[int, list[np.ndarray]] = defaultdict(list)
     votes: dict[int, list[int]] = defaultdict(list)
@@ -169,8 +175,6 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
         fid, wid = int(r.frame_id), int(r.window_id)
         if fid not in frames.index:
             raise ValueError(f"fruit_count: panoptic_frames frame {fid} is not in frames.parquet")
-        if (wid, fid) not in poses.index:
-            raise ValueError(f"fruit_count: no pose of frame {fid} in window {wid} in window_poses.parquet")
         fr = frames.loc[fid]
         inst = read_label(ctx.abspath(r.instance_path), "fused instance")
         sem = read_label(ctx.abspath(r.semantic_path), "fused semantic")
@@ -178,7 +182,7 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
         if not inst.shape == sem.shape == depth.shape:
             raise ImageError(f"frame {fid}: fused PNGs {r.instance_path} {inst.shape}, {r.semantic_path} {sem.shape} "
                              f"and depth render {r.depth_path} {depth.shape} differ in size")
-        c2w = pose_matrix(poses.loc[(wid, fid), ["tx", "ty", "tz", "qx", "qy", "qz", "qw"]].to_numpy(np.float64))
+        c2w = pose_matrix(np.array([r.tx, r.ty, r.tz, r.qx, r.qy, r.qz, r.qw], np.float64))  # row frame
         k = np.array([fr.fx, fr.fy, fr.cx, fr.cy], np.float64)
         v, u = np.nonzero(inst > 0)
         ids = inst[v, u]
@@ -212,12 +216,14 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
         rows.append({"fruit_id": fruit, "class_id": cls, "class_name": class_name(cls),
                      "class_confidence": float(np.mean(v == cls)), **m, "median_depth_m": med_depth,
                      "near_row": med_depth <= cfg.max_depth_m, "n_frames": len(set(seen[fruit])),
+                     "counted": bool(med_depth <= cfg.max_depth_m and len(set(seen[fruit])) >= cfg.min_count_frames
+                                     and m["n_points"] >= cfg.min_count_points),
                      "n_windows": int(n_windows.get(fruit, 1)), "first_frame_id": min(seen[fruit]),
                      "last_frame_id": max(seen[fruit])})
         cloud_pts.append(pts)
         cloud_ids.append(np.full(len(pts), fruit))
     fruits = pd.DataFrame(rows, columns=schemas.get("fruits").names) if rows else schemas.empty("fruits")
-    near = fruits[fruits.near_row.astype(bool)]
+    near = fruits[fruits.counted.astype(bool)]
     counts = pd.DataFrame([{"class_id": c.id, "class_name": c.name, "count": int((near.class_id == c.id).sum()),
                             "mean_diameter_m": (float(near.loc[near.class_id == c.id, "diameter_m"].dropna().mean())
                                                 if near.loc[near.class_id == c.id, "diameter_m"].notna().any() else None)}
@@ -237,6 +243,10 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
     if n_far:
         ctx.note(f"{n_far} fruits beyond {cfg.max_depth_m:g} m (far row) are in fruits.parquet with near_row = "
                  f"false and not counted")
-    ctx.summary.update(fruits=len(fruits), counted=len(near), far_row=n_far,
+    n_frag = int((fruits.near_row.astype(bool) & ~fruits.counted.astype(bool)).sum())
+    if n_frag:
+        ctx.note(f"{n_frag} near-row fruits seen in under {cfg.min_count_frames} fused frames or with under "
+                 f"{cfg.min_count_points} points are fragments: in fruits.parquet with counted = false")
+    ctx.summary.update(fruits=len(fruits), counted=len(near), far_row=n_far, fragments=n_frag,
                        **{f"count_{c}": int(n) for c, n in zip(counts.class_name, counts["count"])})
     return {"fruits": fruits, "counts": counts}

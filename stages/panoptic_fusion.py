@@ -4,6 +4,7 @@ from __future__ import annotations
 import os
 from collections import defaultdict
 from dataclasses import dataclass, field
+from typing import Literal
 from pathlib import Path
 
 import numpy as np
@@ -11,7 +12,7 @@ import pandas as pd
 from scipy.optimize import linear_sum_assignment
 
 import schemas
-from nerf.geometry import pose_matrix
+from nerf.geometry import pose_matrix, pose_txyzq
 from pipeline.classes import THING_IDS, VOID
 from pipeline.images import ImageError, read_label, write_png
 from pipeline.stage import StageContext
@@ -20,6 +21,7 @@ INPUTS = ("frames", "windows", "window_poses", "window_metrics", "nerf")
 OUTPUTS = ("panoptic_frames", "panoptic", "fruit_slots")
 
 RENDER_KINDS = ("rgb", "depth", "semantic", "instance")
+POSE_COLS = ("tx", "ty", "tz", "qx", "qy", "qz", "qw")
 DEPTH_SCALE_M = 0.001
 """NeRF depth renders are 16-bit millimetres (data/README.md)."""
 
@@ -39,6 +41,17 @@ class Config:
     """a split-off cluster becomes a fruit of its own only if it holds at least this many frames; a single
     frame's stray centre (a sliver at the image border, un-projected onto what lies behind it) rejoins the
     slot's main cluster."""
+    centre: Literal["sphere", "median"] = "sphere"
+    """a slot's 3D centre for the association: 'sphere' = centre of a sphere fitted to its seen surface
+    (median where no plausible fit), 'median' = median of the seen surface points (biased towards the
+    cameras that saw it, so windows that saw a fruit from opposite sides disagree by centimetres)."""
+    max_fruit_radius_m: float = 0.1
+    """a sphere fit with a larger radius is not a fruit (a flat patch): the median is used."""
+    align_windows: bool = True
+    """bring every window into one row frame before fusing: each window refines its poses on its own, so two
+    windows place one fruit where their own stretch of odometry put it, centimetres apart over a row with
+    drift. The frames two windows share give the rigid transform between them; windows are chained from the
+    first (whose frame, the odometry's near the row start, is the row frame). Off = each window's own frame."""
     min_slot_px: int = 4
     """slots with fewer pixels over all the window's frames are dropped (pixels become void)."""
     max_points_per_view: int = 400
@@ -49,12 +62,50 @@ class Config:
             raise ValueError(f"panoptic_fusion.max_match_distance_m must be > 0, got {self.max_match_distance_m}")
         if not 0.0 <= self.min_mask_iou <= 1.0:
             raise ValueError(f"panoptic_fusion.min_mask_iou must be in [0, 1], got {self.min_mask_iou}")
+        if not self.max_fruit_radius_m > 0:
+            raise ValueError(f"panoptic_fusion.max_fruit_radius_m must be > 0, got {self.max_fruit_radius_m}")
         if self.split_distance_m < 0 or self.min_slot_px < 1 or self.max_points_per_view < 1 or self.min_split_frames < 1:
             raise ValueError("panoptic_fusion: split_distance_m must be >= 0, min_slot_px, max_points_per_view and "
                              "min_split_frames >= 1")
 
 
 # -- shared helpers (also used by fruit_count, evaluate and report) ---------------------------------------
+
+def rigid_between(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
+    """Rigid transform T [4, 4] with T @ src[i] ~ dst[i] for camera poses src, dst [N, 4, 4]: the rotation
+    is the chordal mean of dst_R src_R^T (orientations pin the roll about the row a straight, nearly
+    collinear track of positions leaves free), the translation the mean of dst_t - R src_t."""
+    m = np.einsum("nij,nkj->ik", dst[:, :3, :3], src[:, :3, :3])          # sum of dst_R @ src_R^T
+    u, _, vt = np.linalg.svd(m)
+    r = u @ np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))]) @ vt
+    out = np.eye(4)
+    out[:3, :3] = r
+    out[:3, 3] = (dst[:, :3, 3] - src[:, :3, 3] @ r.T).mean(0)
+    return out
+
+
+def window_alignments(window_poses: pd.DataFrame) -> dict[int, np.ndarray]:
+    """Per window, the transform [4, 4] from its own (refined) frame into the row frame: the first window's
+    frame, each later window joined to the nearest earlier one it shares frames with (rigid_between on the
+    shared frames' poses, as already aligned). A window sharing no frame keeps the previous one's transform."""
+    cols = ["tx", "ty", "tz", "qx", "qy", "qz", "qw"]
+    poses = {int(w): dict(zip(g.frame_id.astype(int), pose_matrix(g[cols].to_numpy(np.float64))))
+             for w, g in window_poses.groupby("window_id")}
+    out: dict[int, np.ndarray] = {}
+    done: list[int] = []
+    for wid in sorted(poses):
+        t = out[done[-1]] if done else np.eye(4)
+        for prev in reversed(done):
+            shared = sorted(set(poses[wid]) & set(poses[prev]))
+            if shared:
+                src = np.stack([poses[wid][f] for f in shared])
+                dst = out[prev] @ np.stack([poses[prev][f] for f in shared])
+                t = rigid_between(src, dst)
+                break
+        out[wid] = t
+        done.append(wid)
+    return out
+
 
 def render_path(nerf_dir: Path, window_id: int, kind: str, frame_id: int) -> Path:
     """nerf/window_NNN/renders/<kind>_<frame>.png; <frame> zero-padded to 6 digits (as nerf_fit writes it)
@@ -90,6 +141,24 @@ def robust_centre(points: np.ndarray, k_mad: float = 3.0) -> tuple[np.ndarray, n
     mad = 1.4826 * np.median(np.abs(d - np.median(d)))
     keep = d <= np.median(d) + k_mad * max(mad, 1e-4)
     return np.median(points[keep], 0), keep
+
+
+def surface_centre(points: np.ndarray, max_radius_m: float, min_points: int = 20) -> np.ndarray:
+    """Centre of a fruit from world points [N, 3] of its seen surface: the centre of a least-squares sphere
+    through the inliers of robust_centre where that fit is plausible (radius <= max_radius_m, diameter at
+    most twice the points' largest extent, centre within max_radius_m of the median), else their median.
+    The median of a seen surface sits on the side facing the camera, so two windows that saw one fruit
+    from either side put medians several centimetres apart; the sphere centre does not move with the view."""
+    from stages.fruit_count import fit_sphere, principal_extents  # fruit_count imports this module
+
+    med, keep = robust_centre(points)
+    inl = points[keep]
+    if len(inl) < max(min_points, 4):
+        return med
+    c, r = fit_sphere(inl)
+    ok = (np.all(np.isfinite(c)) and 0 < r <= max_radius_m and 2 * r <= 2 * principal_extents(inl)[0]
+          and np.linalg.norm(c - med) <= max_radius_m)
+    return c if ok else med
 
 
 def subsample(n: int, cap: int) -> np.ndarray:
@@ -170,6 +239,8 @@ class LocalFruit:
     centre: np.ndarray | None
     fruit_id: int = 0
     drop_reason: str = ""
+    median: np.ndarray | None = None
+    """median of the seen surface points (the fallback position estimate; `centre` may be a sphere fit's)."""
     members: list[int] = field(default_factory=list)
 
 
@@ -201,6 +272,16 @@ def split_frames(frame_centres: dict[int, np.ndarray], dist_m: float, min_frames
     return out
 
 
+def centre_distance(a: LocalFruit, b: LocalFruit) -> float:
+    """Distance of two local fruits: the smaller of their centres' and their medians' distances. The sphere
+    centre does not move with the view, but on a fruit seen as a few noisy pixels (the far row) two fits can
+    disagree where the medians agree."""
+    d = float(np.linalg.norm(a.centre - b.centre))
+    if a.median is not None and b.median is not None:
+        d = min(d, float(np.linalg.norm(a.median - b.median)))
+    return d
+
+
 def pair_cost(a: LocalFruit, b: LocalFruit, masks: dict[tuple[int, int], np.ndarray],
               part_of: dict[tuple[int, int, int], int], cfg: Config) -> float:
     """Matching cost of two local fruits of different windows (inf = not the same fruit):
@@ -208,7 +289,7 @@ def pair_cost(a: LocalFruit, b: LocalFruit, masks: dict[tuple[int, int], np.ndar
     shows the fruit on any such frame)."""
     if a.centre is None or b.centre is None:
         return np.inf
-    dist = float(np.linalg.norm(a.centre - b.centre))
+    dist = centre_distance(a, b)
     if dist > cfg.max_match_distance_m:
         return np.inf
     inter = union = 0
@@ -242,9 +323,8 @@ def associate(fruits: list[LocalFruit], masks: dict[tuple[int, int], np.ndarray]
     for a_i, wa in enumerate(wids):
         for wb in wids[a_i + 1:]:
             ia, ib = by_window[wa], by_window[wb]
-            ca = np.stack([fruits[i].centre for i in ia])
-            cb = np.stack([fruits[i].centre for i in ib])
-            near = np.linalg.norm(ca[:, None] - cb[None], axis=2) <= cfg.max_match_distance_m
+            near = np.array([[centre_distance(fruits[i], fruits[j]) <= cfg.max_match_distance_m for j in ib]
+                             for i in ia])
             if not near.any():
                 continue
             cost = np.full(near.shape, np.inf)
@@ -280,6 +360,12 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
     frames: pd.DataFrame = inputs["frames"].set_index("frame_id", drop=False)
     nerf_dir = Path(inputs["nerf"])
     views = window_views(inputs["windows"], inputs["window_poses"], inputs["window_metrics"], nerf_dir, ctx)
+    if cfg.align_windows and not views.empty:
+        wp = inputs["window_poses"]
+        align = window_alignments(wp[wp.window_id.isin(views.window_id.unique())])
+        views["c2w"] = [align[int(w)] @ c for w, c in zip(views.window_id, views.c2w)]
+        moved = max(float(np.linalg.norm(t[:3, 3])) for t in align.values())
+        ctx.summary["window_alignment_max_m"] = round(moved, 4)
     out_dir = ctx.output_dir("panoptic")
     (out_dir / "semantic").mkdir(parents=True, exist_ok=True)
     (out_dir / "instance").mkdir(parents=True, exist_ok=True)
@@ -340,7 +426,8 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
             elif len(pts) == 0:
                 lf.drop_reason = "no pixel with valid rendered depth"
             else:
-                lf.centre = robust_centre(pts)[0]
+                lf.median = robust_centre(pts)[0]
+                lf.centre = surface_centre(pts, cfg.max_fruit_radius_m) if cfg.centre == "sphere" else lf.median
             for f in fids:
                 part_of[(wid, slot, f)] = p
             local.append(lf)
@@ -390,7 +477,8 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
                      "instance_path": ctx.relpath("panoptic", f"instance/{name}"),
                      "rgb_path": data_relpath(render_path(nerf_dir, wid, "rgb", fid), ctx.data_root),
                      "depth_path": data_relpath(render_path(nerf_dir, wid, "depth", fid), ctx.data_root),
-                     "n_fruits": int(len(np.unique(out_inst[out_inst > 0])))})
+                     "n_fruits": int(len(np.unique(out_inst[out_inst > 0]))),
+                     **dict(zip(POSE_COLS, pose_txyzq(r.c2w[None])[0].tolist()))})
     slots = pd.DataFrame([{
         "window_id": lf.window_id, "slot": lf.slot, "part": lf.part, "fruit_id": lf.fruit_id,
         "class_id": lf.class_id, "n_frames": len(lf.frames), "n_px": lf.n_px,

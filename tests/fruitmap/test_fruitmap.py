@@ -77,6 +77,69 @@ def test_fusion_does_not_depend_on_the_windows_slot_numbers(make_row, perfect_ro
     np.testing.assert_allclose(a[["x_m", "y_m", "z_m"]], b[["x_m", "y_m", "z_m"]], atol=1e-9)
 
 
+def shifted_window_poses(row, window_id: int, t: np.ndarray) -> None:
+    """Move every pose of one window by the rigid transform t [4, 4] (as an independent refinement would)."""
+    from nerf.geometry import pose_matrix, pose_txyzq
+
+    cols = ["tx", "ty", "tz", "qx", "qy", "qz", "qw"]
+    path = row.processed / "window_poses.parquet"
+    wp = pd.read_parquet(path)
+    sel = wp.window_id == window_id
+    wp.loc[sel, cols] = pose_txyzq(t @ pose_matrix(wp.loc[sel, cols].to_numpy(np.float64)))
+    wp.to_parquet(path)
+
+
+def test_windows_placed_apart_by_their_own_refinement_are_aligned_before_fusing(make_row, perfect_row):
+    t = np.eye(4)
+    yaw = np.radians(3.0)
+    t[:2, :2] = [[np.cos(yaw), -np.sin(yaw)], [np.sin(yaw), np.cos(yaw)]]
+    t[:3, 3] = [0.05, 0.04, 0.01]
+    truth = pd.read_parquet(perfect_row.processed / "fruits.parquet")
+    counts = {}
+    for align in (True, False):
+        row = make_row(name=f"align_{align}")
+        shifted_window_poses(row, 1, t)
+        run_stages(row, f"panoptic_fusion.align_windows={str(align).lower()}")
+        fruits = pd.read_parquet(row.processed / "fruits.parquet")
+        counts[align] = len(fruits)
+        if align:
+            assert len(fruits) == len(truth)
+            np.testing.assert_allclose(fruits[["x_m", "y_m", "z_m"]], truth[["x_m", "y_m", "z_m"]], atol=1e-6)
+    assert counts[False] > counts[True]  # unaligned, the fruits both windows saw are counted twice
+
+
+def test_sphere_centre_does_not_move_with_the_side_a_fruit_is_seen_from():
+    rng = np.random.default_rng(2)
+    centre, r = np.array([1.0, 0.7, 0.8]), 0.04
+
+    def seen_from(azimuth: float) -> np.ndarray:  # the half of the sphere facing a camera at that azimuth
+        d = rng.normal(size=(800, 3))
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        view = np.array([np.cos(azimuth), np.sin(azimuth), 0.0])
+        d = d[d @ view > 0.2]
+        return centre + r * d + rng.normal(0, 0.0005, d.shape)
+
+    left, right = seen_from(np.radians(-130)), seen_from(np.radians(-50))
+    assert np.linalg.norm(np.median(left, 0) - np.median(right, 0)) > 0.03
+    for pts in (left, right):
+        assert np.linalg.norm(panoptic_fusion.surface_centre(pts, 0.1) - centre) < 0.003
+
+
+def test_rigid_between_recovers_a_transform_from_a_straight_track():
+    rng = np.random.default_rng(0)
+    src = np.tile(np.eye(4), (6, 1, 1))
+    src[:, 0, 3] = np.linspace(0, 0.5, 6)                     # collinear camera positions
+    src[:, :3, :3] = np.array([[0, 0, 1], [-1, 0, 0], [0, -1, 0]], float)  # looking sideways
+    t = np.eye(4)
+    a, b = rng.normal(size=3), rng.normal(size=3)
+    from scipy.spatial.transform import Rotation
+
+    t[:3, :3] = Rotation.from_rotvec(0.05 * a / np.linalg.norm(a)).as_matrix()
+    t[:3, 3] = 0.03 * b
+    got = panoptic_fusion.rigid_between(src, t @ src)
+    np.testing.assert_allclose(got, t, atol=1e-9)
+
+
 def test_split_slots_become_separate_fruits_and_close_slots_never_merge_within_a_window():
     cfg = panoptic_fusion.Config(max_match_distance_m=0.05)
     c = np.zeros(3)
