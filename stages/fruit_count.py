@@ -15,7 +15,8 @@ from nerf.geometry import pose_matrix
 from pipeline.classes import DEFAULT_CLASSES, THING_IDS, class_name
 from pipeline.images import ImageError, read_label
 from pipeline.stage import StageContext
-from stages.panoptic_fusion import DEPTH_SCALE_M, id_colours, robust_centre, subsample, unproject
+from stages.panoptic_fusion import (DEPTH_SCALE_M, fit_sphere, id_colours, principal_extents, robust_centre,
+                                   subsample, unproject)
 
 INPUTS = ("frames", "nerf", "panoptic_frames", "panoptic", "fruit_slots")
 OUTPUTS = ("fruits", "counts", "fruit_map")
@@ -69,25 +70,6 @@ class Config:
             raise ValueError(f"fruit_count.max_fit_extent_ratio must be >= 1, got {self.max_fit_extent_ratio}")
 
 
-def fit_sphere(points: np.ndarray) -> tuple[np.ndarray, float]:
-    """Least-squares sphere through points [N, 3] (N >= 4): the algebraic (Kasa) solution of
-    |p|^2 = 2 c.p + (r^2 - |c|^2), refined by minimising the geometric residuals |p - c| - r with a soft-L1
-    loss. Unlike extents, it recovers the full radius from a cap seen from one side. Returns (centre, r)."""
-    p = np.asarray(points, np.float64)
-    mu = p.mean(0)
-    q = p - mu                                            # centred for conditioning
-    a = np.c_[2 * q, np.ones(len(q))]
-    sol, *_ = np.linalg.lstsq(a, (q ** 2).sum(1), rcond=None)
-    c0, r0 = sol[:3], float(np.sqrt(max(sol[3] + sol[:3] @ sol[:3], 1e-12)))
-    scale = max(float(np.median(np.linalg.norm(q - c0, axis=1))), 1e-6)
-
-    def resid(x: np.ndarray) -> np.ndarray:
-        return np.linalg.norm(q - x[:3], axis=1) - x[3]
-
-    res = least_squares(resid, np.r_[c0, r0], loss="soft_l1", f_scale=0.1 * scale, max_nfev=50)
-    return res.x[:3] + mu, abs(float(res.x[3]))
-
-
 def fit_spheroid(points: np.ndarray) -> tuple[np.ndarray, float, float]:
     """Least-squares spheroid with a vertical (z) axis through points [N, 3] (N >= 5):
     ((x-cx)^2 + (y-cy)^2) / a^2 + (z-cz)^2 / c^2 = 1. Algebraic start from the linear model
@@ -114,15 +96,6 @@ def fit_spheroid(points: np.ndarray) -> tuple[np.ndarray, float, float]:
 
     x = least_squares(resid, x0, loss="soft_l1", f_scale=0.003, max_nfev=100).x
     return x[:3] + mu, 2 * abs(float(x[3])), 2 * abs(float(x[4]))
-
-
-def principal_extents(points: np.ndarray) -> np.ndarray:
-    """2.5-97.5 percentile ranges of the points along their principal axes, largest first [3]."""
-    q = points - points.mean(0)
-    _, vecs = np.linalg.eigh(np.cov(q.T))
-    proj = q @ vecs
-    ext = np.percentile(proj, 97.5, axis=0) - np.percentile(proj, 2.5, axis=0)
-    return np.sort(ext)[::-1]
 
 
 def measure(points: np.ndarray, cfg: Config) -> dict:

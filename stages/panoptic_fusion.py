@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
-from scipy.optimize import linear_sum_assignment
+from scipy.optimize import least_squares, linear_sum_assignment
 
 import schemas
 from nerf.geometry import pose_matrix, pose_txyzq
@@ -143,14 +143,40 @@ def robust_centre(points: np.ndarray, k_mad: float = 3.0) -> tuple[np.ndarray, n
     return np.median(points[keep], 0), keep
 
 
+def fit_sphere(points: np.ndarray) -> tuple[np.ndarray, float]:
+    """Least-squares sphere through points [N, 3] (N >= 4): the algebraic (Kasa) solution of
+    |p|^2 = 2 c.p + (r^2 - |c|^2), refined by minimising the geometric residuals |p - c| - r with a soft-L1
+    loss. Unlike extents, it recovers the full radius from a cap seen from one side. Returns (centre, r)."""
+    p = np.asarray(points, np.float64)
+    mu = p.mean(0)
+    q = p - mu                                            # centred for conditioning
+    a = np.c_[2 * q, np.ones(len(q))]
+    sol, *_ = np.linalg.lstsq(a, (q ** 2).sum(1), rcond=None)
+    c0, r0 = sol[:3], float(np.sqrt(max(sol[3] + sol[:3] @ sol[:3], 1e-12)))
+    scale = max(float(np.median(np.linalg.norm(q - c0, axis=1))), 1e-6)
+
+    def resid(x: np.ndarray) -> np.ndarray:
+        return np.linalg.norm(q - x[:3], axis=1) - x[3]
+
+    res = least_squares(resid, np.r_[c0, r0], loss="soft_l1", f_scale=0.1 * scale, max_nfev=50)
+    return res.x[:3] + mu, abs(float(res.x[3]))
+
+
+def principal_extents(points: np.ndarray) -> np.ndarray:
+    """2.5-97.5 percentile ranges of the points along their principal axes, largest first [3]."""
+    q = points - points.mean(0)
+    _, vecs = np.linalg.eigh(np.cov(q.T))
+    proj = q @ vecs
+    ext = np.percentile(proj, 97.5, axis=0) - np.percentile(proj, 2.5, axis=0)
+    return np.sort(ext)[::-1]
+
+
 def surface_centre(points: np.ndarray, max_radius_m: float, min_points: int = 20) -> np.ndarray:
     """Centre of a fruit from world points [N, 3] of its seen surface: the centre of a least-squares sphere
     through the inliers of robust_centre where that fit is plausible (radius <= max_radius_m, diameter at
     most twice the points' largest extent, centre within max_radius_m of the median), else their median.
     The median of a seen surface sits on the side facing the camera, so two windows that saw one fruit
     from either side put medians several centimetres apart; the sphere centre does not move with the view."""
-    from stages.fruit_count import fit_sphere, principal_extents  # fruit_count imports this module
-
     med, keep = robust_centre(points)
     inl = points[keep]
     if len(inl) < max(min_points, 4):
