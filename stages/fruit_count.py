@@ -145,7 +145,7 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
     depths: dict[int, list[np.ndarray]] = defaultdict(list)
     seen: dict[int, list[int]] = defaultdict(list)
     for r in ctx.progress(pf.itertuples(index=False), "unproject fruits", total=len(pf)):
-        fid, wid = int(r.frame_id), int(r.window_id)
+        fid = int(r.frame_id)
         if fid not in frames.index:
             raise ValueError(f"fruit_count: panoptic_frames frame {fid} is not in frames.parquet")
         fr = frames.loc[fid]
