@@ -33,7 +33,6 @@ from torch import Tensor
 
 from nerf.assignment import SlotMemory, SlotWindow, along_track, assign, position_preference, segment_costs, segment_geometry
 from nerf.field import param_count
-from nerf.optim import adam
 from nerf.panoptic import PanopticField, integrate_probs
 from nerf.panoptic_losses import consistency_loss, instance_loss, semantic_loss
 from nerf.render import candidates, composite_weights, pack, pixel_rays
@@ -322,7 +321,7 @@ def fit_panoptic(model, labels: WindowLabels, is_train: np.ndarray, depths: np.n
     shared = cfg.grid_mode == "shared"
     if shared:  # one grid for colour and panoptic: the panoptic losses move the colour grid too
         params.append({"params": model.field.feature_parameters(), "lr": cfg.lr_grid * 0.1, "eps": 1e-15})
-    opt = adam(params)
+    opt = torch.optim.Adam(params)
     sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: 0.1 ** min(1.0, s / max(cfg.steps, 1)))
     rng = np.random.default_rng(seed)
     n_params = param_count(pfield) - (0 if cfg.instances else param_count(pfield.instance))

@@ -18,7 +18,6 @@ from torch import Tensor
 from nerf.config import NerfConfig
 from nerf.field import RadianceField, build_field, param_count
 from nerf.occupancy import OccupancyGrid
-from nerf.optim import adam
 from nerf.poses import PoseCorrection
 from nerf.render import (Samples, accumulate, candidates, composite_weights, cone_steps, depth_guided, march, pack,
                          pixel_rays, transmittance)
@@ -260,12 +259,12 @@ def fit_window(data: WindowData, cfg: NerfConfig, device: str = "cpu",
     poses = PoseCorrection(n, scene.scale_m).to(dev)
     train_idx = torch.from_numpy(np.flatnonzero(data.is_train)).to(dev)
     val_idx = torch.from_numpy(np.flatnonzero(~data.is_train)).to(dev)
-    opt = adam([
+    opt = torch.optim.Adam([
         *fld.param_groups(cfg),
         {"params": list(poses.parameters()), "lr": cfg.lr_pose if cfg.refine_poses else 0.0},
     ])
     sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: 0.1 ** min(1.0, s / max(cfg.steps, 1)))
-    val_opt = adam(poses.parameters(), lr=cfg.lr_pose * 3)
+    val_opt = torch.optim.Adam(poses.parameters(), lr=cfg.lr_pose * 3)
     edges = model.edges(dev)
     occ_fn = model.occupied_fn()
     step_m = float(cfg.step_scale / k[:, 0].mean() * 0.5)
