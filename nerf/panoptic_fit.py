@@ -458,23 +458,20 @@ def panoptic_labels(p_sem: np.ndarray, p_inst: np.ndarray, cfg: PanopticConfig,
     keeps its thin visible strip), instances smaller than cfg.min_segment_px are dropped,
     an instance's pixels take its majority thing class, and dropped pixels take their most likely
     stuff class with instance 0."""
-    things = np.array(cfg.thing_classes)
-    stuff = np.array([c for c in range(p_sem.shape[-1]) if c not in set(cfg.thing_classes)])
+    things = np.array(cfg.thing_classes, np.int64)
+    stuff = np.array([c for c in range(p_sem.shape[-1]) if c not in set(cfg.thing_classes)], np.int64)
     stuff_sem = stuff[p_sem[..., stuff].argmax(-1)] if stuff.size else np.zeros(p_sem.shape[:-1], np.int64)
-    if things.size:
-        is_thing = p_sem[..., things].sum(-1) >= (p_sem[..., stuff].max(-1) if stuff.size else 0.0)
-        sem = np.where(is_thing, things[p_sem[..., things].argmax(-1)], stuff_sem)
-    else:
-        is_thing, sem = np.zeros(stuff_sem.shape, bool), stuff_sem
+    best_thing = things[p_sem[..., things].argmax(-1)] if things.size else stuff_sem
+    p_fruit = p_sem[..., things].sum(-1)                                   # 0 without thing classes
+    is_thing = (p_fruit >= (p_sem[..., stuff].max(-1) if stuff.size else 0.0)) & (things.size > 0)
+    slot = p_inst[..., 1:].argmax(-1) + 1
+    if cfg.instances and things.size and cfg.grow_threshold < 1.0:
+        is_thing = grow_instances(is_thing, slot, p_fruit > cfg.grow_threshold, depth, cfg.grow_depth_m)
+    sem = np.where(is_thing, best_thing, stuff_sem)
     if not cfg.instances:  # semantic only: thing pixels keep their class, no instance ids
         return sem.astype(np.uint8), np.zeros(sem.shape, np.int32)
-    slot = p_inst[..., 1:].argmax(-1) + 1
-    if things.size and cfg.grow_threshold < 1.0:
-        is_thing = grow_instances(is_thing, slot, p_sem[..., things].sum(-1) > cfg.grow_threshold, depth,
-                                  cfg.grow_depth_m)
-        sem = np.where(is_thing, things[p_sem[..., things].argmax(-1)], stuff_sem)
     inst = np.where(is_thing, slot, 0).astype(np.int32)
-    out_sem = np.where(is_thing, sem, stuff_sem).astype(np.uint8)
+    out_sem = sem.astype(np.uint8)
     out_inst = np.zeros_like(inst)
     kernel = np.ones((3, 3), bool)
     for sl_id in np.unique(inst[inst > 0]):

@@ -232,7 +232,7 @@ def row_scores(inputs: dict, gt: GroundTruth, gt_fruits: pd.DataFrame | None, gt
     out.update(fused.metrics(cfg.min_frames_id))
     if gt_fruits is not None:
         fruits = inputs["fruits"]
-        pred = fruits[fruits["counted" if "counted" in fruits else "near_row"].astype(bool)]
+        pred = fruits[fruits.counted.astype(bool)]
         seg = inputs["gt_segments"]
         seg = seg[seg.kept.astype(bool) & seg.frame_id.isin(pf.frame_id)]
         px = seg.groupby("instance_id").area_px.sum()

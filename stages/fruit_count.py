@@ -15,8 +15,8 @@ from nerf.geometry import pose_matrix
 from pipeline.classes import DEFAULT_CLASSES, THING_IDS, class_name
 from pipeline.images import ImageError, read_label
 from pipeline.stage import StageContext
-from stages.panoptic_fusion import (DEPTH_SCALE_M, fit_sphere, id_colours, principal_extents, robust_centre,
-                                   subsample, unproject)
+from stages.panoptic_fusion import (DEPTH_SCALE_M, fit_sphere, id_colours, plausible_fit, principal_extents,
+                                   robust_centre, subsample, unproject)
 
 INPUTS = ("frames", "nerf", "panoptic_frames", "panoptic", "fruit_slots")
 OUTPUTS = ("fruits", "counts", "fruit_map")
@@ -110,9 +110,9 @@ def measure(points: np.ndarray, cfg: Config) -> dict:
     ext = principal_extents(inl)
     out.update(axis1_m=ext[0], axis2_m=ext[1], axis3_m=ext[2], diameter_pca_m=ext[1],
                height_m=float(np.percentile(inl[:, 2], 97.5) - np.percentile(inl[:, 2], 2.5)))
+
     def plausible(c: np.ndarray, r: float) -> bool:
-        return bool(np.all(np.isfinite(c)) and 0 < r <= cfg.max_radius_m and np.linalg.norm(c - med) <= cfg.max_radius_m
-                    and 2 * r <= cfg.max_fit_extent_ratio * ext[0])
+        return plausible_fit(c, r, med, ext[0], cfg.max_radius_m, cfg.max_fit_extent_ratio)
 
     centres = {}
     c, r = fit_sphere(inl)
@@ -186,10 +186,11 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
         things = v[np.isin(v, THING_IDS)]
         cls = int(np.bincount(things).argmax()) if len(things) else int(np.bincount(v).argmax())
         med_depth = float(np.median(np.concatenate(depths[fruit])))
+        near_row, n_frames = med_depth <= cfg.max_depth_m, len(set(seen[fruit]))
         rows.append({"fruit_id": fruit, "class_id": cls, "class_name": class_name(cls),
                      "class_confidence": float(np.mean(v == cls)), **m, "median_depth_m": med_depth,
-                     "near_row": med_depth <= cfg.max_depth_m, "n_frames": len(set(seen[fruit])),
-                     "counted": bool(med_depth <= cfg.max_depth_m and len(set(seen[fruit])) >= cfg.min_count_frames
+                     "near_row": near_row, "n_frames": n_frames,
+                     "counted": bool(near_row and n_frames >= cfg.min_count_frames
                                      and m["n_points"] >= cfg.min_count_points),
                      "n_windows": int(n_windows.get(fruit, 1)), "first_frame_id": min(seen[fruit]),
                      "last_frame_id": max(seen[fruit])})

@@ -88,8 +88,7 @@ def window_alignments(window_poses: pd.DataFrame) -> dict[int, np.ndarray]:
     """Per window, the transform [4, 4] from its own (refined) frame into the row frame: the first window's
     frame, each later window joined to the nearest earlier one it shares frames with (rigid_between on the
     shared frames' poses, as already aligned). A window sharing no frame keeps the previous one's transform."""
-    cols = ["tx", "ty", "tz", "qx", "qy", "qz", "qw"]
-    poses = {int(w): dict(zip(g.frame_id.astype(int), pose_matrix(g[cols].to_numpy(np.float64))))
+    poses = {int(w): dict(zip(g.frame_id.astype(int), pose_matrix(g[list(POSE_COLS)].to_numpy(np.float64))))
              for w, g in window_poses.groupby("window_id")}
     out: dict[int, np.ndarray] = {}
     done: list[int] = []
@@ -171,10 +170,20 @@ def principal_extents(points: np.ndarray) -> np.ndarray:
     return np.sort(ext)[::-1]
 
 
-def surface_centre(points: np.ndarray, max_radius_m: float, min_points: int = 20) -> np.ndarray:
+def plausible_fit(centre: np.ndarray, radius: float, median: np.ndarray, largest_extent: float,
+                  max_radius_m: float, max_extent_ratio: float) -> bool:
+    """A surface fit (sphere or spheroid: its largest semi-axis as `radius`) describes a fruit: finite, radius
+    in (0, max_radius_m], centre within max_radius_m of the points' median (not a nearly flat patch), and
+    diameter at most max_extent_ratio x the points' largest extent (not a whole fruit extrapolated from a
+    small cap)."""
+    return bool(np.all(np.isfinite(centre)) and 0 < radius <= max_radius_m
+                and np.linalg.norm(centre - median) <= max_radius_m and 2 * radius <= max_extent_ratio * largest_extent)
+
+
+def surface_centre(points: np.ndarray, max_radius_m: float, min_points: int = 20,
+                   max_extent_ratio: float = 2.0) -> np.ndarray:
     """Centre of a fruit from world points [N, 3] of its seen surface: the centre of a least-squares sphere
-    through the inliers of robust_centre where that fit is plausible (radius <= max_radius_m, diameter at
-    most twice the points' largest extent, centre within max_radius_m of the median), else their median.
+    through the inliers of robust_centre where that fit is plausible (plausible_fit), else their median.
     The median of a seen surface sits on the side facing the camera, so two windows that saw one fruit
     from either side put medians several centimetres apart; the sphere centre does not move with the view."""
     med, keep = robust_centre(points)
@@ -182,9 +191,7 @@ def surface_centre(points: np.ndarray, max_radius_m: float, min_points: int = 20
     if len(inl) < max(min_points, 4):
         return med
     c, r = fit_sphere(inl)
-    ok = (np.all(np.isfinite(c)) and 0 < r <= max_radius_m and 2 * r <= 2 * principal_extents(inl)[0]
-          and np.linalg.norm(c - med) <= max_radius_m)
-    return c if ok else med
+    return c if plausible_fit(c, r, med, principal_extents(inl)[0], max_radius_m, max_extent_ratio) else med
 
 
 def subsample(n: int, cap: int) -> np.ndarray:
@@ -224,7 +231,7 @@ def window_views(windows: pd.DataFrame, window_poses: pd.DataFrame, window_metri
     if not rows:
         return pd.DataFrame(columns=["window_id", "frame_id", "offset", "c2w"])
     out = pd.concat(rows, ignore_index=True)
-    out["c2w"] = list(pose_matrix(out[["tx", "ty", "tz", "qx", "qy", "qz", "qw"]].to_numpy(np.float64)))
+    out["c2w"] = list(pose_matrix(out[list(POSE_COLS)].to_numpy(np.float64)))
     return out[["window_id", "frame_id", "offset", "c2w"]]
 
 

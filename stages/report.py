@@ -95,7 +95,7 @@ def top_down_map(fruits: pd.DataFrame, frames: pd.DataFrame) -> str:
 
     fig, ax = plt.subplots(figsize=(9, 3.6), dpi=110)
     ax.plot(frames.tx, frames.ty, "-", color="0.4", lw=1, label="camera path (odometry)")
-    counted = fruits["counted" if "counted" in fruits else "near_row"].astype(bool)
+    counted = fruits.counted.astype(bool)
     for c in DEFAULT_CLASSES:
         if not c.is_thing:
             continue
@@ -106,7 +106,7 @@ def top_down_map(fruits: pd.DataFrame, frames: pd.DataFrame) -> str:
                 ax.scatter(f.x_m, f.y_m, s=size if near else 25, marker=marker, color=np.array(c.rgb) / 255,
                            edgecolors="k" if near else None, linewidths=0.5,
                            label=f"{c.name}{'' if near else ' (far row or fragment, not counted)'} ({len(f)})")
-    for f in fruits[fruits["counted" if "counted" in fruits else "near_row"].astype(bool)].itertuples():
+    for f in fruits[counted].itertuples():
         ax.annotate(str(f.fruit_id), (f.x_m, f.y_m), fontsize=6, ha="center", va="bottom",
                     xytext=(0, 5), textcoords="offset points")
     ax.set_xlabel("x along the row [m]")
@@ -184,7 +184,7 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
         for k in ("pq", "miou", "pq_detector", "miou_detector", "id_consistency", "ate_odometry_m", "ate_refined_m"):
             if k in piv:
                 wtab[k] = [piv[k].get(f"window_{w:03d}", np.nan) for w in wtab.window_id]
-    near = fruits[fruits["counted" if "counted" in fruits else "near_row"].astype(bool)]
+    near = fruits[fruits.counted.astype(bool)]
     parts = [f"<h1>PAg-NeRF phenotyping report: {html.escape(ctx.seq)}</h1>",
              f"<p>{len(near)} near-row fruits counted ({len(fruits) - len(near)} far-row fruits or fragments not "
              f"counted) in "
