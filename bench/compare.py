@@ -8,8 +8,9 @@ Methods (rows):
   fruits as missed unless a frame holds only one fruit of that class);
 - Panoptic-Lifting-like: our field, fixed poses, one shared grid for colour and panoptic, plain assignment;
 - ours S / ours L (L with --with-L only): the paper's presets with the colour step count of this run;
-- ours cpu with three pose sources: odometry fixed, COLMAP (when colmap_poses.parquet has registered
-  frames of the window, else skipped with the reason) and online refinement (ours, the default).
+- ours cpu with three pose sources: odometry fixed, COLMAP (from colmap_poses.parquet when it covers the
+  window, else COLMAP is run on the window here; skipped with the reason when it registers nothing usable)
+  and online refinement (ours, the default).
 
 Columns of `compare.parquet` (one row per method and window): method, poses (pose source), window, status
 ('ok' or 'skipped'), note, psnr (dB, mean over the scored validation frames), pq, sq, rq, pq_things,
@@ -28,6 +29,7 @@ from __future__ import annotations
 
 import argparse
 import copy
+import tempfile
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -45,6 +47,8 @@ from nerf.geometry import pose_matrix
 from nerf.panoptic_fit import PanopticConfig, WindowLabels, fit_panoptic, render_panoptic
 from nerf.trainer import WindowData, fit_window, psnr
 from pipeline.io import read_table
+from stages.colmap_poses import Config as ColmapConfig
+from stages.colmap_poses import window_colmap
 from stages.nerf_fit import initial_poses, load_labels, load_window
 
 DEFAULT = dict(colour_steps=300, panoptic_steps=200, val_frames=5)
@@ -97,17 +101,25 @@ def methods(colour_steps: int, with_l: bool) -> list[tuple[str, str, dict, dict]
     return out
 
 
-def colmap_window(interim: Path, w: pd.DataFrame, wid: int) -> tuple[pd.DataFrame | None, str]:
-    """The window's rows with COLMAP initial poses, or None and why not."""
+def colmap_window(interim: Path, w: pd.DataFrame, kept: pd.DataFrame, wid: int, data_root: Path
+                  ) -> tuple[pd.DataFrame | None, str]:
+    """The `kept` rows of window `w` (all its frames) with COLMAP initial poses, or None and why not. Poses come from the sequence's
+    colmap_poses.parquet when it covers the window; otherwise the bench runs COLMAP on the window itself
+    (default colmap_poses settings, about 7 s per window of 41 frames on 2 cores)."""
     path = interim / "colmap_poses.parquet"
-    if not path.is_file():
-        return None, f"{path} does not exist (run `pag colmap_poses --set colmap_poses.enabled=true`)"
-    colmap = pd.read_parquet(path)
-    c = colmap[colmap.window_id == wid] if "window_id" in colmap else colmap.iloc[:0]
-    if "source" not in c or not (c["source"] == "colmap").any():
-        return None, f"{path} has no COLMAP-registered frame in window {wid}"
+    colmap = pd.read_parquet(path) if path.is_file() else None
+    note = ""
+    if colmap is None or "window_id" not in colmap or not (colmap.window_id == wid).any():
+        with tempfile.TemporaryDirectory(prefix="pag_bench_colmap_") as tmp:
+            colmap, counts = window_colmap(wid, w.sort_values("frame_id"), ColmapConfig(enabled=True), data_root,
+                                           Path(tmp))
+        note = f"COLMAP run by the bench: {counts['frames'] - counts['frames_not_registered']} of {counts['frames']} " \
+               f"frames registered"
+    c = colmap[colmap.window_id == wid]
+    if not (c["source"] == "colmap").any():
+        return None, f"COLMAP registered no usable frame in window {wid}"
     try:
-        return initial_poses(w, wid, colmap, "colmap"), ""
+        return initial_poses(kept, wid, colmap, "colmap"), note
     except ValueError as err:
         return None, str(err)
 
@@ -141,7 +153,7 @@ def run(seq: str = "synth_row", windows_sel: list[int] | None = None, colour_ste
             ncfg = preset(kw.pop("preset"), **kw, steps=colour_steps, seed=wid)
             d = data
             if poses == "COLMAP":
-                cw, why = colmap_window(interim, wk, wid)
+                cw, why = colmap_window(interim, w, wk, wid, data_root)
                 if cw is None:
                     rows.append({"method": name, "poses": poses, "status": "skipped", "note": why, **common})
                     print(f"window {wid}: {name} / {poses}: skipped ({why})", flush=True)
@@ -149,7 +161,8 @@ def run(seq: str = "synth_row", windows_sel: list[int] | None = None, colour_ste
                 d = copy.copy(data)
                 d.poses_c2w = pose_matrix(cw[["tx", "ty", "tz", "qx", "qy", "qz", "qw"]].to_numpy(np.float64))
             r = fit_and_score(d, labels, gts, ncfg, replace(base_p, **pcfg_kw))
-            rows.append({"method": name, "poses": poses, "status": "ok", "note": "", **r, **common})
+            rows.append({"method": name, "poses": poses, "status": "ok", "note": why if poses == "COLMAP" else "",
+                         **r, **common})
             print(f"window {wid}: {name} / {poses}: PSNR {r['psnr']:.2f} PQ {r['pq']:.3f} mIoU {r['miou']:.3f} "
                   f"ID {r['id_consistency']:.2f} fit {r['fit_min_per_window']:.1f} min "
                   f"render {r['render_s_per_image']:.1f} s", flush=True)

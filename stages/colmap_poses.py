@@ -281,6 +281,29 @@ def align_window(wid: int, frame_ids: np.ndarray, odo_c2w: np.ndarray, colmap_c2
     return df, counts
 
 
+def window_colmap(wid: int, w: pd.DataFrame, cfg: Config, data_root: Path, work_dir: Path
+                  ) -> tuple[pd.DataFrame, dict[str, int]]:
+    """COLMAP poses of one window's frames (`w`: windows rows merged with frames, sorted by frame), aligned to
+    the odometry: the window's colmap_poses rows and counts (as align_window), plus registered_by_colmap."""
+    if w["rgb_path"].isna().any():
+        raise ValueError(f"colmap_poses: window {wid}: frames {w.loc[w.rgb_path.isna(), 'frame_id'].tolist()} "
+                         f"are not in frames.parquet")
+    k = w[["fx", "fy", "cx", "cy"]].drop_duplicates()
+    if len(k) != 1:
+        raise ValueError(f"colmap_poses: window {wid} mixes {len(k)} different intrinsics "
+                         f"{k.to_dict('records')}; one fixed PINHOLE camera per window is expected")
+    paths = {int(f): data_root / p for f, p in zip(w["frame_id"], w["rgb_path"])}
+    missing = [f"{f}: {p}" for f, p in paths.items() if not p.is_file()]
+    if missing:
+        raise FileNotFoundError(f"colmap_poses: window {wid}: colour images missing: {missing[:5]}"
+                                f"{' ...' if len(missing) > 5 else ''}; rerun `pag ingest`")
+    with _Quiet():
+        col = reconstruct(paths, tuple(float(v) for v in k.iloc[0]), cfg, work_dir)
+    odo = pose_matrix(w[POSE_COLS].to_numpy(np.float64))
+    df, counts = align_window(wid, w["frame_id"].to_numpy(), odo, col, cfg)
+    return df, {**counts, "registered_by_colmap": len(col)}
+
+
 def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]:
     if not cfg.enabled:
         ctx.note("disabled (colmap_poses.enabled=false): empty table written; nerf_fit starts from odometry")
@@ -291,35 +314,22 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
     if windows.empty:
         raise ValueError("colmap_poses: the windows table is empty; nothing to reconstruct")
     tables, totals = [], {}
-    with _Quiet(), tempfile.TemporaryDirectory(prefix="pag_colmap_") as tmp:
+    with tempfile.TemporaryDirectory(prefix="pag_colmap_") as tmp:
         wids = sorted(int(w) for w in windows["window_id"].unique())
         for wid in ctx.progress(wids, "window", total=len(wids)):
             w = windows[windows.window_id == wid].merge(frames, on="frame_id", how="left").sort_values("frame_id")
-            if w["rgb_path"].isna().any():
-                raise ValueError(f"colmap_poses: window {wid}: frames {w.loc[w.rgb_path.isna(), 'frame_id'].tolist()} "
-                                 f"are not in frames.parquet")
-            k = w[["fx", "fy", "cx", "cy"]].drop_duplicates()
-            if len(k) != 1:
-                raise ValueError(f"colmap_poses: window {wid} mixes {len(k)} different intrinsics "
-                                 f"{k.to_dict('records')}; one fixed PINHOLE camera per window is expected")
-            paths = {int(f): ctx.abspath(p) for f, p in zip(w["frame_id"], w["rgb_path"])}
-            missing = [f"{f}: {p}" for f, p in paths.items() if not p.is_file()]
-            if missing:
-                raise FileNotFoundError(f"colmap_poses: window {wid}: colour images missing: {missing[:5]}"
-                                        f"{' ...' if len(missing) > 5 else ''}; rerun `pag ingest --seq {ctx.seq}`")
-            col = reconstruct(paths, tuple(float(v) for v in k.iloc[0]), cfg, Path(tmp) / f"window_{wid:03d}")
-            odo = pose_matrix(w[POSE_COLS].to_numpy(np.float64))
-            df, counts = align_window(wid, w["frame_id"].to_numpy(), odo, col, cfg)
+            df, counts = window_colmap(wid, w, cfg, ctx.data_root, Path(tmp) / f"window_{wid:03d}")
             tables.append(df)
             for key, v in counts.items():
                 totals[key] = totals.get(key, 0) + v
             if counts["windows_without_colmap"]:
-                ctx.note(f"window {wid}: COLMAP registered {len(col)} of {len(w)} frames, fewer than min_registered="
-                         f"{cfg.min_registered} of them fit the odometry; the window keeps its odometry poses")
+                ctx.note(f"window {wid}: COLMAP registered {counts['registered_by_colmap']} of {len(w)} frames, fewer "
+                         f"than min_registered={cfg.min_registered} of them fit the odometry; the window keeps its "
+                         f"odometry poses")
     out = pd.concat(tables, ignore_index=True)
     n_col = int(out["registered"].sum())
     ctx.summary.update(windows=len(tables), frames=len(out), frames_colmap=n_col,
-                       frames_odometry_fallback=len(out) - n_col, **{k: v for k, v in totals.items() if k != "frames"},
+                       frames_odometry_fallback=len(out) - n_col, **{k: v for k, v in totals.items() if k not in ("frames", "registered_by_colmap")},
                        median_window_rmse_m=round(float(np.nanmedian(out.drop_duplicates("window_id")["window_rmse_m"])), 4)
                        if out["window_rmse_m"].notna().any() else None)
     if n_col < len(out):

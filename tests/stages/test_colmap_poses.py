@@ -172,3 +172,23 @@ def test_nerf_fit_hands_its_windows_the_colmap_poses(colmap_row, tmp_path, monke
     frames = pd.DataFrame(got.value.args[0]["0"]["frames"]).set_index("frame_id")
     odo = inputs["frames"].set_index("frame_id").loc[frames.index]
     assert (frames["pose_source"] == "odometry").all() and np.allclose(frames[cp.POSE_COLS], odo[cp.POSE_COLS])
+
+
+def test_compare_bench_runs_colmap_itself_when_the_table_lacks_the_window(colmap_row, tmp_path):
+    from bench.compare import colmap_window
+    interim = colmap_row / "interim" / "synth_colmap"
+    frames, windows = pd.read_parquet(interim / "frames.parquet"), pd.read_parquet(interim / "windows.parquet")
+    w = windows[windows.window_id == 1].merge(frames, on="frame_id")
+    kept = w.iloc[::2].reset_index(drop=True)
+    from_table, note = colmap_window(interim, w, kept, 1, colmap_row)
+    assert note == "" and (from_table["pose_source"] == "colmap").any()
+    bare = tmp_path / "interim"  # no colmap_poses.parquet here: the bench reconstructs window 1 itself
+    bare.mkdir()
+    own, note = colmap_window(bare, w, kept, 1, colmap_row)
+    assert note.startswith("COLMAP run by the bench") and len(own) == len(kept)
+    assert (own["frame_id"].to_numpy() == kept["frame_id"].to_numpy()).all()
+    reg = (own["pose_source"] == "colmap").to_numpy() & (from_table["pose_source"] == "colmap").to_numpy()
+    assert reg.sum() >= len(kept) // 2
+    # the same images and settings (but all cores here): both land within a centimetre of each other
+    d = np.linalg.norm(own.loc[reg, ["tx", "ty", "tz"]].to_numpy() - from_table.loc[reg, ["tx", "ty", "tz"]].to_numpy(), axis=1)
+    assert d.max() < 0.01
