@@ -13,6 +13,7 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 from torch import Tensor
 
 from nerf.config import NerfConfig
@@ -228,6 +229,19 @@ def depth_weight(cfg: NerfConfig, step: int) -> float:
     return cfg.depth_loss_weight * max(0.0, 1.0 - step / (cfg.depth_loss_fade * cfg.steps))
 
 
+def depth_supervised(depths: Tensor, edge_m: float, far_m: float) -> Tensor:
+    """[N, H, W] bool: pixels that carry the depth loss: a valid depth below the far plane and, with edge_m > 0,
+    no depth edge around it: every 3x3 neighbour valid (sensors lose depth at occlusion boundaries) and
+    max - min of the neighbourhood's depths <= edge_m."""
+    ok = (depths > 0) & (depths < far_m)
+    if edge_m <= 0:
+        return ok
+    d = torch.where(ok, depths, torch.zeros_like(depths))[:, None]
+    hi = F.max_pool2d(d, 3, stride=1, padding=1)
+    lo = -F.max_pool2d(-d, 3, stride=1, padding=1)       # an invalid neighbour (0) makes the range large
+    return ok & ((hi - lo)[:, 0] <= edge_m)
+
+
 def _rays_for(model: NerfModel, poses: PoseCorrection, c2w0: Tensor, k: Tensor, frames: Tensor, u: Tensor, v: Tensor,
               attach: Tensor | None) -> tuple[Tensor, Tensor]:
     """Rays of pixels (u, v) of `frames` through the corrected poses; rows with attach = False detached."""
@@ -248,6 +262,7 @@ def fit_window(data: WindowData, cfg: NerfConfig, device: str = "cpu",
     n, h, w = data.images.shape[:3]
     images = torch.from_numpy(np.ascontiguousarray(data.images)).to(dev)                       # uint8
     depths = torch.from_numpy(np.ascontiguousarray(data.depths, dtype=np.float32)).to(dev)
+    depth_ok = depth_supervised(depths, cfg.depth_edge_m, cfg.far_m)
     k = torch.tensor(data.intrinsics, dtype=torch.float32, device=dev)
     c2w0 = torch.tensor(data.poses_c2w, dtype=torch.float32, device=dev)
     scene = window_scene(data.poses_c2w, data.intrinsics, (w, h), cfg.far_m)
@@ -300,7 +315,7 @@ def fit_window(data: WindowData, cfg: NerfConfig, device: str = "cpu",
         w_depth = depth_weight(cfg, step)
         if w_depth > 0:
             dpred = accumulate(s.t_mid, wts, s.ray_index, s.n_rays) + left * cfg.far_m
-            m = (~pose_rays) & (dgt > 0) & (dgt < cfg.far_m)
+            m = (~pose_rays) & depth_ok[frames, v, u]
             if m.any():
                 loss = loss + w_depth * torch.mean(torch.abs(dpred[m] - dgt[m]))
         if cfg.opacity_loss_weight > 0:

@@ -37,8 +37,8 @@ class ModelOverrides:
     """log2 table size per level."""
     depth_loss_weight: float = -1.0
     """weight of the depth loss."""
-    depth_loss_fade: float = 0.0
-    """share of the steps over which the depth loss weight falls to 0 (nerf/config.py)."""
+    depth_loss_fade: float = -1.0
+    """share of the steps over which the depth loss weight falls to 0 (nerf/config.py; 0 = constant weight)."""
     skip_empty: int = -1
     """1 = occupancy skipping, 0 = every sample inside the window's bounds (benchmarks)."""
 
@@ -67,7 +67,7 @@ class Config:
 
 
 def model_config(cfg: Config) -> NerfConfig:
-    over = {k: v for k, v in vars(cfg.model).items() if (v > 0 if k != "depth_loss_weight" else v >= 0)}
+    over = {k: v for k, v in vars(cfg.model).items() if (v >= 0 if k in ("depth_loss_weight", "depth_loss_fade") else v > 0)}
     if "skip_empty" in over or cfg.model.skip_empty == 0:
         over["skip_empty"] = bool(cfg.model.skip_empty)
     return preset(cfg.preset, refine_poses=cfg.refine_poses, seed=cfg.seed, **over)

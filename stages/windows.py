@@ -1,8 +1,13 @@
 """Cut the sequence into NeRF windows around the labelled frames, with a train/validation split.
 
+With `cover_row` (default) the windows also cover every frame of the sequence, so the fruit map counts
+the whole row: a window next to an uncovered stretch is extended into it (at most `max_extend` frames per
+side), a longer stretch gets filler windows (no labelled centre), and neighbouring windows are made to
+share at least `min_overlap` frames, which panoptic_fusion aligns the windows on.
+
 Every other frame of the sequence is a validation frame, counted from the first window's centre, and
-every window's centre frame (the labelled, evaluation frame) is one too. A frame shared by overlapping
-windows thus has the same role in all of them: no frame trains one window and validates its neighbour,
+every labelled (evaluation) frame is one too. A frame's role depends on the frame alone, so a frame
+shared by overlapping windows has the same role in all of them: no frame trains one window and validates its neighbour,
 and a shared validation frame is rendered by every window that holds it, so panoptic_fusion can take
 it from the window whose centre is nearest (where the fruits in it are best covered by training frames).
 """
@@ -27,12 +32,24 @@ class Config:
     """keep at most this many windows, evenly spread (0 = all)."""
     unlabelled_spacing: int = 0
     """when no frame is labelled, centre windows every this many frames (0 = 2 * half_width)."""
+    cover_row: bool = True
+    """extend windows and add filler windows until every frame is in a window and neighbouring windows share
+    min_overlap frames (off = windows only around the labelled frames, as in the paper; frames between them
+    are then in no window and their fruits are not counted). Ignored with max_windows (a subset of the
+    windows cannot cover the row)."""
+    min_overlap: int = 4
+    """frames neighbouring windows share at least (cover_row; at most half_width)."""
+    max_extend: int = 0
+    """frames a window may grow by on each side to close a gap (cover_row; 0 = half_width // 2); longer
+    gaps get filler windows."""
 
     def __post_init__(self) -> None:
         if self.half_width < 1:
             raise ValueError(f"windows.half_width must be >= 1, got {self.half_width}")
-        if self.max_windows < 0 or self.unlabelled_spacing < 0:
-            raise ValueError("windows.max_windows and windows.unlabelled_spacing must be >= 0")
+        if self.max_windows < 0 or self.unlabelled_spacing < 0 or self.max_extend < 0:
+            raise ValueError("windows.max_windows, windows.unlabelled_spacing and windows.max_extend must be >= 0")
+        if self.min_overlap < 0:
+            raise ValueError(f"windows.min_overlap must be >= 0, got {self.min_overlap}")
 
 
 def centres(frame_ids: np.ndarray, labelled: np.ndarray, cfg: Config) -> tuple[np.ndarray, bool]:
@@ -49,6 +66,40 @@ def centres(frame_ids: np.ndarray, labelled: np.ndarray, cfg: Config) -> tuple[n
     return c, from_labels
 
 
+def spans(centre_pos: list[int], n: int, cfg: Config) -> list[tuple[int, int, int]]:
+    """(first, last, centre) frame positions of the windows: one per centre (+-half_width, clipped), and
+    with cfg.cover_row the filler windows and extensions that cover positions 0..n-1 with overlaps."""
+    hw = cfg.half_width
+    out = [(max(0, c - hw), min(n - 1, c + hw), c) for c in sorted(centre_pos)]
+    if not cfg.cover_row or cfg.max_windows or not out:
+        return out
+    ext = cfg.max_extend or hw // 2
+    overlap = min(cfg.min_overlap, hw)
+    # 1. filler windows in stretches that extending the neighbours cannot close
+    filled = []
+    for i in range(len(out) + 1):
+        lo = out[i - 1][1] + 1 if i else 0                  # first uncovered position of the gap
+        hi = out[i][0] - 1 if i < len(out) else n - 1       # last uncovered position
+        sides = (i > 0) + (i < len(out))
+        need = hi - lo + 1 + (overlap if sides == 2 else 0)
+        if hi >= lo and need > ext * sides:
+            k = -(-(hi - lo + 1) // (2 * hw + 1))
+            for c in np.linspace(lo + hw, hi - hw, k) if k > 1 else [(lo + hi) // 2]:
+                c = int(round(c))
+                filled.append((max(0, c - hw), min(n - 1, c + hw), c))
+        if i < len(out):
+            filled.append(out[i])
+    # 2. extend neighbours to share min_overlap frames, and the end windows to the sequence ends
+    win = [list(s) for s in sorted(filled, key=lambda s: (s[0], s[2]))]
+    win[0][0], win[-1][1] = 0, n - 1
+    for a, b in zip(win, win[1:]):
+        short = overlap - (a[1] - b[0] + 1)
+        if short > 0:
+            a[1] = min(n - 1, a[1] + (short + 1) // 2)
+            b[0] = max(0, b[0] - short // 2)
+    return [tuple(w) for w in win]
+
+
 def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]:
     frames: pd.DataFrame = inputs["frames"].sort_values("frame_id")
     if frames.empty:
@@ -61,15 +112,21 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
                  f"{cfg.unlabelled_spacing or 2 * cfg.half_width} frames (no evaluation frame)")
     rows = []
     anchor = pos[int(cs[0])] if len(cs) else 0
-    for w, c in enumerate(cs):
-        i = pos[int(c)]
-        for j in range(max(0, i - cfg.half_width), min(len(ids), i + cfg.half_width + 1)):
+    labelled = {pos[int(c)] for c in cs} if from_labels else set()
+    windows = spans([pos[int(c)] for c in cs], len(ids), cfg)
+    for w, (lo, hi, i) in enumerate(windows):
+        for j in range(lo, hi + 1):
             off = j - i
-            val = off == 0 or (j - anchor) % 2 == 0
-            rows.append((w, int(ids[j]), int(c), off, "val" if val else "train", off == 0 and from_labels))
+            val = (j - anchor) % 2 == 0 or j in labelled or (off == 0 and not from_labels)
+            rows.append((w, int(ids[j]), int(ids[i]), off, "val" if val else "train", off == 0 and i in labelled))
     df = pd.DataFrame(rows, columns=["window_id", "frame_id", "center_frame_id", "offset", "split", "is_center"])
     df["n_windows"] = df.groupby("frame_id")["window_id"].transform("nunique").astype("int32")
     overlap = int((df.drop_duplicates("frame_id")["n_windows"] > 1).sum())
-    ctx.summary.update(windows=len(cs), frames_per_window=round(len(df) / max(len(cs), 1), 1),
-                       frames_in_several_windows=overlap)
+    fillers = len(windows) - len(cs)
+    if fillers:
+        ctx.note(f"{fillers} filler window(s) without a labelled centre cover stretches of the row between or "
+                 f"beyond the labelled frames (windows.cover_row)")
+    ctx.summary.update(windows=len(windows), filler_windows=fillers,
+                       frames_per_window=round(len(df) / max(len(windows), 1), 1),
+                       frames_in_several_windows=overlap, frames_in_no_window=len(ids) - int(df.frame_id.nunique()))
     return {"windows": df}

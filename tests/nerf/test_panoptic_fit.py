@@ -1,4 +1,5 @@
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -95,6 +96,27 @@ def test_window_without_fruit_detections_skips_the_instance_part(fitted):
                                       PanopticConfig(steps=1)).params            # instance head not counted
     r = render_panoptic(model, load_panoptic(pres.state(), model), 1)
     assert (r["instance"] == 0).all()
+
+
+def test_stuff_labels_near_the_border_are_void_with_stuff_border(fitted):
+    data, sem, inst, model = fitted
+    n, h, w = sem.shape
+    m = int(round(0.2 * h))
+    border = np.zeros((h, w), bool)
+    border[:m] = border[-m:] = True
+    border[:, :m] = border[:, -m:] = True
+    # stuff labels only in the border strip, the fruits as detected, void elsewhere
+    lab = np.where(border[None] & ~np.isin(sem, [2, 3, 4]), 1, np.where(np.isin(sem, [2, 3, 4]), sem, 255))
+    labels = WindowLabels(lab.astype(np.uint8), np.where(np.isin(sem, [2, 3, 4]), inst, 0).astype(np.int32),
+                          np.ones(sem.shape, np.float32))
+    cfg = PanopticConfig(steps=30, frames_per_step=2, rays_per_frame=128)
+    trusted = fit_panoptic(model, labels, data.is_train, data.depths, cfg)
+    ignored = fit_panoptic(model, labels, data.is_train, data.depths, replace(cfg, stuff_border=0.2))
+    assert min(r["stuff"] for r in trusted.history) > 0                  # stuff rays pulled to slot 0
+    assert max(r["stuff"] for r in ignored.history) == 0                 # every stuff label lay in the margin
+    assert ignored.assignments > 0 and ignored.history[-1]["instance"] >= 0
+    with pytest.raises(ValueError, match="stuff_border"):
+        PanopticConfig(stuff_border=0.5)
 
 
 def test_nan_confidence_is_treated_as_zero():

@@ -73,8 +73,25 @@ def test_fixed_poses_stay_fixed_when_refinement_is_off(window):
 def test_depth_loss_fades_to_zero_over_its_share_of_the_steps():
     from nerf.trainer import depth_weight
 
-    const = preset("cpu", steps=100, depth_loss_weight=0.1)
+    const = preset("cpu", steps=100, depth_loss_weight=0.1, depth_loss_fade=0.0)
     assert depth_weight(const, 0) == depth_weight(const, 99) == 0.1
     fade = replace(const, depth_loss_fade=0.4)
     assert depth_weight(fade, 0) == pytest.approx(0.1) and depth_weight(fade, 20) == pytest.approx(0.05)
     assert depth_weight(fade, 40) == 0.0 and depth_weight(fade, 99) == 0.0
+
+
+def test_depth_loss_skips_depth_edges_and_pixels_next_to_lost_depth():
+    from nerf.trainer import depth_supervised
+
+    d = torch.full((1, 6, 7), 0.5)
+    d[0, :, 4:] = 1.0          # a step of 0.5 m between columns 3 and 4
+    d[0, 5, 0] = 0.0           # one pixel without depth
+    d[0, 0, 6] = 9.0           # beyond the far plane
+    ok = depth_supervised(d, 0.05, 3.5)
+    assert not ok[0, :, 3:5].any()                               # both sides of the step
+    assert ok[0, 0:4, 0:3].all() and ok[0, 2:, 5:].all()          # flat parts keep it
+    assert not ok[0, 4:, 0:2].any() and not ok[0, 5, 0]           # the lost pixel and its neighbours
+    assert not ok[0, 0, 6] and not ok[0, 1, 5]                    # beyond far: no target, and an edge
+    plain = depth_supervised(d, 0.0, 3.5)                        # edge_m 0: every valid pixel below far
+    assert plain.sum() == 6 * 7 - 2 and plain[0, :, 3:5].all()
+    assert depth_supervised(d, 1.0, 3.5)[0, :, 3:5].all()         # a step below edge_m is no edge

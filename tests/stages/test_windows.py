@@ -15,7 +15,7 @@ def run(n, labelled, **cfg):
 
 
 def test_one_window_per_labelled_frame_clipped_with_alternating_split():
-    w, ctx = run(30, {2, 15}, half_width=5)
+    w, ctx = run(30, {2, 15}, half_width=5, cover_row=False)
     assert sorted(w["window_id"].unique()) == [0, 1]
     w0 = w[w.window_id == 0]
     assert w0["frame_id"].tolist() == list(range(0, 8))      # clipped at the start
@@ -27,7 +27,7 @@ def test_one_window_per_labelled_frame_clipped_with_alternating_split():
 
 
 def test_shared_frames_have_one_role_in_every_window_and_centres_are_validation():
-    w, _ = run(40, {10, 17}, half_width=6)          # centres of opposite parity, overlapping windows
+    w, _ = run(40, {10, 17}, half_width=6, cover_row=False)  # centres of opposite parity, overlapping windows
     roles = w.groupby("frame_id")["split"].nunique()
     assert (roles == 1).all()
     assert (w[w.is_center]["split"] == "val").all()
@@ -37,14 +37,14 @@ def test_shared_frames_have_one_role_in_every_window_and_centres_are_validation(
 
 
 def test_overlap_is_recorded():
-    w, ctx = run(30, {10, 14}, half_width=5)
+    w, ctx = run(30, {10, 14}, half_width=5, cover_row=False)
     n = w.drop_duplicates("frame_id").set_index("frame_id")["n_windows"]
     assert n.loc[12] == 2 and n.loc[5] == 1
     assert ctx.summary["frames_in_several_windows"] == len(range(9, 16))
 
 
 def test_unlabelled_sequence_gets_evenly_spaced_windows_without_eval_frame():
-    w, ctx = run(50, set(), half_width=5)
+    w, ctx = run(50, set(), half_width=5, cover_row=False)
     assert sorted(w["center_frame_id"].unique()) == [5, 15, 25, 35, 45]
     assert not w["is_center"].any()
     assert "no labelled frames" in ctx.summary["notes"][0]
@@ -58,3 +58,31 @@ def test_max_windows_spreads_evenly():
 def test_bad_half_width():
     with pytest.raises(ValueError, match="half_width must be >= 1"):
         windows.Config(half_width=0)
+    with pytest.raises(ValueError, match="min_overlap must be >= 0"):
+        windows.Config(min_overlap=-1)
+
+
+def test_cover_row_extends_windows_into_short_gaps_and_fills_long_ones():
+    # 120 frames, labelled 30 / 60 / 89 (the default row): the end windows grow to the sequence ends
+    w, ctx = run(120, {30, 60, 89}, half_width=20)
+    span = w.groupby("window_id").frame_id.agg(["min", "max"])
+    assert span.values.tolist() == [[0, 50], [40, 80], [69, 119]]
+    assert ctx.summary["filler_windows"] == 0 and ctx.summary["frames_in_no_window"] == 0
+    # 240 frames, labelled 60 / 120 / 179 (a longer row): gaps of 19-40 frames get filler windows
+    w, ctx = run(240, {60, 120, 179}, half_width=20)
+    span = w.groupby("window_id").frame_id.agg(["min", "max"]).sort_values("min").to_numpy()
+    assert ctx.summary["frames_in_no_window"] == 0 and ctx.summary["filler_windows"] >= 3
+    assert (span[1:, 0] <= span[:-1, 1] - 3).all()                   # neighbours share >= 4 frames
+    assert w[w.is_center].frame_id.tolist() == [60, 120, 179]          # fillers have no evaluation frame
+    assert (w.groupby("window_id").size() <= 41 + 2 * 10).all()      # extensions stay within max_extend
+    roles = w.groupby("frame_id")["split"].nunique()
+    assert (roles == 1).all() and (w[w.frame_id.isin([60, 120, 179])].split == "val").all()
+    assert 0.45 <= (w.drop_duplicates("frame_id").split == "train").mean() <= 0.55
+    assert "filler window" in " ".join(ctx.summary["notes"])
+
+
+def test_cover_row_is_off_with_max_windows_and_paper_windows_leave_gaps():
+    w, ctx = run(240, {60, 120, 179}, half_width=20, max_windows=2)
+    assert w.window_id.nunique() == 2 and ctx.summary["frames_in_no_window"] > 0
+    w, ctx = run(240, {60, 120, 179}, half_width=20, cover_row=False)
+    assert w.window_id.nunique() == 3 and ctx.summary["frames_in_no_window"] == 240 - 3 * 41
