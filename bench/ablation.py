@@ -33,7 +33,7 @@ from pipeline.classes import VOID
 from pipeline.images import read_label
 from pipeline.io import read_table
 from stages.evaluate import Config as EvalConfig
-from stages.evaluate import PanopticScore
+from stages.evaluate import PanopticScore, thing_instances
 from stages.nerf_fit import load_labels, load_window
 
 VARIANTS: dict[str, dict] = {
@@ -58,14 +58,37 @@ def ground_truth(row: pd.Series, gt_segments: pd.DataFrame, data_root: Path) -> 
     return np.where(off, VOID, sem), np.where(off, 0, inst)
 
 
+def visible_ids(sem: np.ndarray, inst: np.ndarray, min_px: int) -> set[int]:
+    """Thing instance ids covering at least `min_px` pixels of a frame."""
+    ids, n = np.unique(thing_instances(sem, inst), return_counts=True)
+    return {int(i) for i, c in zip(ids, n) if i > 0 and c >= min_px}
+
+
+def window_count(preds: list[tuple[np.ndarray, np.ndarray]], gts: list[tuple[np.ndarray, np.ndarray]],
+                 min_px: int) -> dict[str, float]:
+    """Fruits counted on a window's scored frames: distinct predicted fruit ids (each >= `min_px` pixels in
+    at least one frame) against the distinct ground-truth fruits visible (>= `min_px`) in the same frames.
+    A fruit whose id changes between frames is counted twice, merged fruits once; per-frame ids (the
+    detector input) count every view of a fruit as a new fruit. Example: ids {3} in frame 1 and {3, 7} in
+    frame 2 on ground truth {1} and {1, 2} -> count_pred 2, count_gt 2, count_error_rel 0."""
+    pred, gt = set(), set()
+    for (p_sem, p_inst), (g_sem, g_inst) in zip(preds, gts):
+        pred |= visible_ids(p_sem, p_inst, min_px)
+        gt |= visible_ids(g_sem, g_inst, min_px)
+    err = abs(len(pred) - len(gt)) / len(gt) if gt else float("nan")
+    return {"count_pred": float(len(pred)), "count_gt": float(len(gt)), "count_error_rel": err}
+
+
 def score(preds: list[tuple[np.ndarray, np.ndarray]], gts: list[tuple[np.ndarray, np.ndarray]]) -> dict[str, float]:
-    """PQ, mIoU and ID consistency of a window's rendered frames, scored as the evaluate stage does."""
-    ps = PanopticScore(EvalConfig().min_visible_px)
+    """PQ, mIoU, ID consistency and the window's fruit count error (window_count) of a window's rendered
+    frames, scored as the evaluate stage does."""
+    min_px = EvalConfig().min_visible_px
+    ps = PanopticScore(min_px)
     for (p_sem, p_inst), (g_sem, g_inst) in zip(preds, gts):
         ps.update(p_sem, p_inst, g_sem, g_inst, np.unique(g_inst[g_inst > 0]))
     m = ps.metrics(EvalConfig().min_frames_id)
     return {k: m[k] for k in ("pq", "sq", "rq", "pq_things", "pq_stuff", "miou", "id_consistency")} | {
-        "fruits_scored": int(m["id_consistency_n_fruits"])}
+        "fruits_scored": int(m["id_consistency_n_fruits"])} | window_count(preds, gts, min_px)
 
 
 def run(seq: str = "synth_row", window: int = 1, colour_steps: int = 0, panoptic_steps: int = 0, threads: int = 2,

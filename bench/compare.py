@@ -7,7 +7,8 @@ Methods (rows):
   it has no instance output, so every fruit of one class in a frame is one segment (PQ counts the
   fruits as missed unless a frame holds only one fruit of that class);
 - Panoptic-Lifting-like: our field, fixed poses, one shared grid for colour and panoptic, plain assignment;
-- ours S / ours L (L with --with-L only): the paper's presets with the colour step count of this run;
+- ours S / ours L: the paper's presets with the colour step count of this run (L is left out with --quick or
+  --no-L: on 2 CPU cores it takes about as long as all the other rows together);
 - ours cpu with three pose sources: odometry fixed, COLMAP (from colmap_poses.parquet when it covers the
   window, else COLMAP is run on the window here; skipped with the reason when it registers nothing usable)
   and online refinement (ours, the default).
@@ -15,14 +16,16 @@ Methods (rows):
 Columns of `compare.parquet` (one row per method and window): method, poses (pose source), window, status
 ('ok' or 'skipped'), note, psnr (dB, mean over the scored validation frames), pq, sq, rq, pq_things,
 pq_stuff, miou, id_consistency (share of fruits seen in >= 3 scored frames with one id throughout),
-fruits_scored, fit_min_per_window (colour + panoptic phase, minutes), render_s_per_image (colour and
-panoptic in one pass, median seconds), params (colour field + panoptic part that is used), colour_steps,
-panoptic_steps, rays_per_step, val_frames, threads, settings (the run's flags). Count error is not
-reported: counts are a row-level result of panoptic_fusion + fruit_count over all windows, and a
-per-window count would need the fusion this bench does not run (`pag evaluate` has count_error_rel).
-Also `compare.md` (Markdown table, means over windows) and `compare.png`.
+fruits_scored, count_pred / count_gt / count_error_rel (the window's fruit count on the scored frames:
+distinct predicted fruit ids against distinct visible ground-truth fruits, bench.ablation.window_count; an
+id that flickers counts a fruit twice, so the detector's per-frame ids overcount and the Semantic-NeRF-like
+model, with no instance output, counts nothing), fit_min_per_window (colour + panoptic phase, minutes),
+render_s_per_image (colour and panoptic in one pass, median seconds), params (colour field + panoptic part
+that is used), colour_steps, panoptic_steps, rays_per_step, val_frames, threads, settings (the run's flags).
+The row-level count of the whole pipeline (fusion of all windows, fruit_count's 3D rules) is `pag evaluate`'s
+count_error_rel. Also `compare.md` (Markdown table, means over windows) and `compare.png`.
 
-    pag bench compare [--seq synth_row] [--window 1 | --all-windows] [--quick] [--with-L]
+    pag bench compare [--seq synth_row] [--window 1 | --all-windows] [--quick] [--no-L | --with-L]
                       [--colour-steps N] [--panoptic-steps N] [--val-frames N]
 """
 from __future__ import annotations
@@ -164,7 +167,7 @@ def run(seq: str = "synth_row", windows_sel: list[int] | None = None, colour_ste
             rows.append({"method": name, "poses": poses, "status": "ok", "note": why if poses == "COLMAP" else "",
                          **r, **common})
             print(f"window {wid}: {name} / {poses}: PSNR {r['psnr']:.2f} PQ {r['pq']:.3f} mIoU {r['miou']:.3f} "
-                  f"ID {r['id_consistency']:.2f} fit {r['fit_min_per_window']:.1f} min "
+                  f"ID {r['id_consistency']:.2f} count {r['count_pred']:.0f}/{r['count_gt']:.0f} fit {r['fit_min_per_window']:.1f} min "
                   f"render {r['render_s_per_image']:.1f} s", flush=True)
     df = pd.DataFrame(rows)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -175,7 +178,8 @@ def run(seq: str = "synth_row", windows_sel: list[int] | None = None, colour_ste
 
 
 COLUMNS = [("psnr", "PSNR dB", "{:.2f}"), ("pq", "PQ %", "{:.1%}"), ("miou", "mIoU %", "{:.1%}"),
-           ("id_consistency", "ID consistency", "{:.2f}"), ("fit_min_per_window", "fit min/window", "{:.2f}"),
+           ("id_consistency", "ID consistency", "{:.2f}"), ("count_error_rel", "count error %", "{:.1%}"),
+           ("fit_min_per_window", "fit min/window", "{:.2f}"),
            ("render_s_per_image", "render s/image", "{:.2f}"), ("params", "parameters", "{:,.0f}")]
 
 
@@ -206,8 +210,9 @@ def markdown(df: pd.DataFrame) -> str:
     foot = (f"\n{df.seq.iloc[0]}, window(s) {sorted(int(v) for v in df.window.unique())}, {int(first.val_frames)} validation frames per "
             f"window scored against ground truth; colour steps {int(ok.colour_steps.dropna().iloc[0]) if 'colour_steps' in ok else '-'}, "
             f"panoptic steps {int(ok.panoptic_steps.dropna().iloc[0]) if 'panoptic_steps' in ok else '-'} for every NeRF; "
-            f"{int(first.threads)} CPU threads; settings: {first.settings or 'default'}. Count error is not per-window "
-            "(it needs panoptic_fusion over all windows; see `pag evaluate`).\n")
+            f"{int(first.threads)} CPU threads; settings: {first.settings or 'default'}. Count error: distinct predicted "
+            "fruit ids vs distinct visible ground-truth fruits on the scored frames (the whole pipeline's row-level "
+            "count is in `pag evaluate`).\n")
     return "\n".join(lines) + "\n" + foot
 
 
@@ -250,7 +255,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--all-windows", action="store_true", help="every window of the sequence (slow)")
     p.add_argument("--quick", action="store_true",
                    help=f"fewer steps and frames: {QUICK} instead of {DEFAULT} (the other flags still override)")
-    p.add_argument("--with-L", dest="with_l", action="store_true", help="also the L preset (slow on CPU)")
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--with-L", dest="with_l", action="store_true", default=None,
+                   help="the L preset row also in --quick mode")
+    g.add_argument("--no-L", dest="with_l", action="store_false", help="leave out the L preset row (slow on CPU)")
     p.add_argument("--colour-steps", type=int, default=0, help="colour steps of every NeRF (0 = the mode's)")
     p.add_argument("--panoptic-steps", type=int, default=0, help="panoptic steps (0 = the mode's)")
     p.add_argument("--val-frames", type=int, default=-1, help="validation frames scored per window (0 = all)")
@@ -259,6 +267,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", type=Path, default=Path("data/bench"))
     a = p.parse_args(argv)
     mode = dict(QUICK if a.quick else DEFAULT)
+    with_l = (not a.quick) if a.with_l is None else a.with_l
     if a.colour_steps:
         mode["colour_steps"] = a.colour_steps
     if a.panoptic_steps:
@@ -267,10 +276,10 @@ def main(argv: list[str] | None = None) -> int:
         mode["val_frames"] = a.val_frames
     settings = (f"{'quick' if a.quick else 'default'}: colour_steps={mode['colour_steps']} "
                 f"panoptic_steps={mode['panoptic_steps']} val_frames={mode['val_frames'] or 'all'}"
-                f"{' with L' if a.with_l else ''}")
+                f"{' with L' if with_l else ' without L'}")
     print(f"pag bench compare, {settings}", flush=True)
     df = run(a.seq, None if a.all_windows else [a.window], mode["colour_steps"], mode["panoptic_steps"],
-             mode["val_frames"], a.with_l, a.threads, settings, a.data_root, a.out)
+             mode["val_frames"], with_l, a.threads, settings, a.data_root, a.out)
     print(markdown(df))
     print(f"wrote {a.out / 'compare.parquet'}, compare.md, compare.png")
     return 0

@@ -10,7 +10,8 @@ ground truth by nearest pixel, intrinsics scaled), so its PSNR and PQ are those 
 Output `pareto.parquet`, one row per point: point, preset ('cpu', 'S', 'L' or '' for other settings),
 n_levels, log2_capacity, image_scale, step_scale, samples_per_ray (training), colour_steps, rays_per_step, panoptic_steps, params, fit_min_per_window
 (colour + panoptic, minutes), render_s_per_image (median, colour + panoptic in one pass), psnr (dB), pq,
-miou, id_consistency, front_psnr / front_pq (on the front of fit time vs that metric), val_frames,
+miou, id_consistency, count_pred / count_gt / count_error_rel (the window's fruit count on the scored frames,
+bench.ablation.window_count), front_psnr / front_pq (on the front of fit time vs that metric), val_frames,
 settings; and `pareto.png`.
 
     pag bench pareto [--seq synth_row] [--window 1] [--quick | --long] [--val-frames N]
@@ -109,7 +110,7 @@ def run(seq: str = "synth_row", window: int = 1, mode: str = "default", val_fram
                      "step_scale": ncfg.step_scale, **r,
                      "val_frames": int((~data.is_train).sum()), "settings": settings, "seq": seq, "window": window})
         print(f"{name}: fit {r['fit_min_per_window']:.2f} min, render {r['render_s_per_image']:.1f} s, "
-              f"PSNR {r['psnr']:.2f}, PQ {r['pq']:.3f}", flush=True)
+              f"PSNR {r['psnr']:.2f}, PQ {r['pq']:.3f}, count {r['count_pred']:.0f}/{r['count_gt']:.0f}", flush=True)
     df = pd.DataFrame(rows)
     df["front_psnr"] = pareto_front(df.fit_min_per_window.to_numpy(), df.psnr.to_numpy())
     df["front_pq"] = pareto_front(df.fit_min_per_window.to_numpy(), df.pq.to_numpy())
@@ -160,6 +161,6 @@ def main(argv: list[str] | None = None) -> int:
     df = run(a.seq, a.window, mode, a.val_frames, a.threads, a.data_root, a.out)
     cols = ["point", "n_levels", "log2_capacity", "colour_steps", "rays_per_step", "image_scale", "step_scale",
             "samples_per_ray", "params", "fit_min_per_window",
-            "render_s_per_image", "psnr", "pq", "miou", "front_psnr", "front_pq"]
+            "render_s_per_image", "psnr", "pq", "miou", "count_error_rel", "front_psnr", "front_pq"]
     print(df[cols].to_string(index=False, float_format=lambda v: f"{v:.3f}"))
     return 0

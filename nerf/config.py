@@ -28,9 +28,10 @@ class NerfConfig:
     field_kind: Literal["permuto", "mlp_pe"] = "permuto"
     """radiance field: 'permuto' (hash grid + small decoders, ours) or 'mlp_pe' (the Semantic-NeRF-like
     baseline: an MLP on a Fourier encoding of position and direction, nerf/baselines.py)."""
-    steps: int = 1800
-    """optimisation steps (the cpu preset is sized for about 3 minutes per window on one free core; on the
-    default row val PSNR grows about 2.5 dB from 600 to 1500 steps, 21.4 -> 24.1)."""
+    steps: int = 1500
+    """optimisation steps (the cpu preset is sized for under 3 minutes per window with 2 workers on 2 cores; on
+    the default row val PSNR grows about 2.5 dB from 600 to 1500 steps, 21.4 -> 24.1, and not from 1500 to
+    1900, 24.3 -> 24.2; 1800 steps took 168-223 s per window in the pipeline)."""
     rays_per_step: int = 1024
     """rays per step."""
     lr_grid: float = 2e-2

@@ -55,3 +55,29 @@ def test_kept_frames_keeps_every_training_frame_and_spreads_the_validation_ones(
     assert kept_frames(is_train, None).tolist() == list(range(9))
     assert kept_frames(is_train, 0).tolist() == [1, 3, 5, 7]
     assert kept_frames(is_train, 2).tolist() == [0, 1, 3, 5, 7, 8]
+
+
+def test_window_count_counts_distinct_ids_so_flicker_overcounts_and_merges_undercount():
+    from bench.ablation import window_count
+    from pipeline.classes import THING_IDS
+
+    thing = THING_IDS[0]
+
+    def frame(segments: dict[int, slice]) -> tuple[np.ndarray, np.ndarray]:
+        sem = np.zeros((10, 40), np.uint8)
+        inst = np.zeros((10, 40), np.int32)
+        for i, cols in segments.items():
+            sem[:, cols], inst[:, cols] = thing, i
+        return sem, inst
+
+    gts = [frame({1: slice(0, 5), 2: slice(10, 15)}), frame({1: slice(2, 7), 2: slice(12, 17)})]
+    same = [frame({5: slice(0, 5), 9: slice(10, 15)}), frame({5: slice(2, 7), 9: slice(12, 17)})]
+    assert window_count(same, gts, 12) == {"count_pred": 2.0, "count_gt": 2.0, "count_error_rel": 0.0}
+    flicker = [frame({5: slice(0, 5), 9: slice(10, 15)}), frame({6: slice(2, 7), 9: slice(12, 17)})]
+    assert window_count(flicker, gts, 12)["count_error_rel"] == 0.5          # fruit 1 counted twice
+    merged = [frame({5: slice(0, 15)}), frame({5: slice(2, 17)})]
+    assert window_count(merged, gts, 12)["count_pred"] == 1.0
+    tiny = [frame({5: slice(0, 5), 8: slice(30, 31)}), frame({5: slice(2, 7)})]   # 10 px of id 8: too small
+    assert window_count(tiny, gts, 12)["count_pred"] == 1.0
+    stuff = [(np.zeros((10, 40), np.uint8), inst) for _, inst in same]       # ids on stuff pixels are no fruit
+    assert window_count(stuff, gts, 12)["count_pred"] == 0.0
