@@ -42,15 +42,12 @@ class Config:
     """ID consistency: a ground-truth fruit counts as visible in a frame with at least this many pixels (the
     panoptic post-processing removes rendered segments below panoptic.min_segment_px = 12, and the detector
     drops segments that small, so a fruit showing fewer pixels cannot carry an id)."""
-    min_gt_px: int = 4
-    """a ground-truth near-row fruit counts as seen (count_gt) with at least this many pixels, kept by the
-    depth filter, over the fused frames (panoptic_fusion drops slots smaller than its min_slot_px)."""
 
     def __post_init__(self) -> None:
         if not self.match_max_distance_m > 0:
             raise ValueError(f"evaluate.match_max_distance_m must be > 0, got {self.match_max_distance_m}")
-        if self.min_frames_id < 1 or self.min_gt_px < 1 or self.min_visible_px < 1:
-            raise ValueError("evaluate.min_frames_id, evaluate.min_gt_px and evaluate.min_visible_px must be >= 1")
+        if self.min_frames_id < 1 or self.min_visible_px < 1:
+            raise ValueError("evaluate.min_frames_id and evaluate.min_visible_px must be >= 1")
 
 
 def void_far(sem: np.ndarray, inst: np.ndarray, far_ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -217,6 +214,16 @@ def to_ground_truth_frame(fruits: pd.DataFrame, frames: pd.DataFrame, gt_poses: 
     return np.einsum("fij,fj->fi", rel[:, :3, :3], xyz) + rel[:, :3, 3]
 
 
+def countable_fruits(gt_segments: pd.DataFrame, near_ids: set[int], cfg: Config) -> list[int]:
+    """Ground-truth near-row fruits the recording shows well enough to count: at least cfg.min_visible_px
+    pixels (kept by the depth filter) in at least cfg.min_frames_id frames of the row, the population the
+    ID consistency is scored on. A fruit glimpsed in one or two frames at the start or end of the recording
+    is left out (count_gt_near_row_all and count_error_rel_all include it)."""
+    seg = gt_segments[gt_segments.kept.astype(bool) & (gt_segments.area_px >= cfg.min_visible_px)]
+    frames = seg.groupby("instance_id").frame_id.nunique()
+    return sorted(int(i) for i, n in frames.items() if n >= cfg.min_frames_id and int(i) in near_ids)
+
+
 def row_scores(inputs: dict, gt: GroundTruth, gt_fruits: pd.DataFrame | None, gt_poses: pd.DataFrame | None,
                cfg: Config, ctx: StageContext) -> list[tuple[str, str, float]]:
     pf: pd.DataFrame = inputs["panoptic_frames"]
@@ -233,16 +240,14 @@ def row_scores(inputs: dict, gt: GroundTruth, gt_fruits: pd.DataFrame | None, gt
     if gt_fruits is not None:
         fruits = inputs["fruits"]
         pred = fruits[fruits.counted.astype(bool)]
-        seg = inputs["gt_segments"]
-        seg = seg[seg.kept.astype(bool) & seg.frame_id.isin(pf.frame_id)]
-        px = seg.groupby("instance_id").area_px.sum()
         near_ids = set(gt_fruits.loc[gt_fruits.near_row.astype(bool), "fruit_id"].astype(int))
-        seen = sorted(int(i) for i, n in px.items() if n >= cfg.min_gt_px and int(i) in near_ids)
+        seen = countable_fruits(inputs["gt_segments"], near_ids, cfg)
         g = gt_fruits.set_index("fruit_id").loc[seen]
-        n_gt, n_pred = len(g), int(inputs["counts"]["count"].sum())
+        n_gt, n_pred, n_all = len(g), int(inputs["counts"]["count"].sum()), len(near_ids)
         out.update(count_gt=float(n_gt), count_pred=float(n_pred),
                    count_error_rel=(n_pred - n_gt) / n_gt if n_gt else float("nan"),
-                   count_gt_near_row_all=float(len(near_ids)))
+                   count_gt_near_row_all=float(n_all),
+                   count_error_rel_all=(n_pred - n_all) / n_all if n_all else float("nan"))
         gxyz = g[["x_m", "y_m", "z_m"]].to_numpy(np.float64)
         raw = pred[["x_m", "y_m", "z_m"]].to_numpy(np.float64)
         aligned = to_ground_truth_frame(pred, gt.frames, gt_poses, pf)
