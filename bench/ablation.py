@@ -27,7 +27,7 @@ import torch
 from bench._common import window_rows, write_parquet
 from nerf.config import preset
 from nerf.field import param_count
-from nerf.panoptic_fit import PanopticConfig, fit_panoptic, render_panoptic
+from nerf.panoptic_fit import PanopticConfig, complete_instances, fit_panoptic, render_panoptic
 from nerf.trainer import fit_window, psnr
 from pipeline.classes import VOID
 from pipeline.images import read_label
@@ -111,13 +111,15 @@ def run(seq: str = "synth_row", window: int = 1, colour_steps: int = 0, panoptic
     for name, change in VARIANTS.items():
         model = copy.deepcopy(colour.model)
         pres = fit_panoptic(model, labels, data.is_train, data.depths, replace(base, **change), seed=cfg.seed)
-        preds, psnrs, render_s = [], [], []
+        renders, psnrs, render_s = [], [], []
         for i in val:
             t1 = time.perf_counter()
-            r = render_panoptic(model, pres, int(i))
+            renders.append(render_panoptic(model, pres, int(i)))
             render_s.append(time.perf_counter() - t1)
-            preds.append((r["semantic"], r["instance"]))
-            psnrs.append(psnr(r["rgb"], torch.from_numpy(data.images[i]).float() / 255.0))
+            psnrs.append(psnr(renders[-1]["rgb"], torch.from_numpy(data.images[i]).float() / 255.0))
+        if pres.cfg.complete_3d:  # as nerf_fit does with the renders it writes
+            complete_instances(renders, data.intrinsics[val], colour.poses_c2w[val], pres.cfg)
+        preds = [(r["semantic"], r["instance"]) for r in renders]
         rows.append({"variant": name, "memory_prior": base.memory_prior, **change, "val_psnr": float(np.mean(psnrs)), **score(preds, gts),
                      "pq_detector": det["pq"], "miou_detector": det["miou"],
                      "params": param_count(model.field) + pres.params, "panoptic_params": pres.params,

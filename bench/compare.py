@@ -47,7 +47,7 @@ from nerf.baselines import PANOPTIC_LIFTING_LIKE, SEMANTIC_ONLY
 from nerf.config import NerfConfig, preset
 from nerf.field import param_count
 from nerf.geometry import pose_matrix
-from nerf.panoptic_fit import PanopticConfig, WindowLabels, fit_panoptic, render_panoptic
+from nerf.panoptic_fit import PanopticConfig, WindowLabels, complete_instances, fit_panoptic, render_panoptic
 from nerf.trainer import WindowData, fit_window, psnr
 from pipeline.io import read_table
 from stages.colmap_poses import Config as ColmapConfig
@@ -73,13 +73,16 @@ def fit_and_score(data: WindowData, labels: WindowLabels, gts: list, ncfg: NerfC
     """Colour phase, panoptic phase, one render per validation frame (colour + panoptic), scores."""
     res = fit_window(data, ncfg, render_val=False)
     pres = fit_panoptic(res.model, labels, data.is_train, data.depths, pcfg, seed=ncfg.seed)
-    preds, psnrs, secs = [], [], []
-    for i in np.flatnonzero(~data.is_train):
+    val = np.flatnonzero(~data.is_train)
+    renders, psnrs, secs = [], [], []
+    for i in val:
         t0 = time.perf_counter()
-        r = render_panoptic(res.model, pres, int(i))
+        renders.append(render_panoptic(res.model, pres, int(i)))
         secs.append(time.perf_counter() - t0)
-        preds.append((r["semantic"], r["instance"]))
-        psnrs.append(psnr(r["rgb"], torch.from_numpy(data.images[i]).float() / 255.0))
+        psnrs.append(psnr(renders[-1]["rgb"], torch.from_numpy(data.images[i]).float() / 255.0))
+    if pcfg.complete_3d:  # as nerf_fit does with the renders it writes
+        complete_instances(renders, data.intrinsics[val], res.poses_c2w[val], pres.cfg)
+    preds = [(r["semantic"], r["instance"]) for r in renders]
     return {"psnr": float(np.mean(psnrs)), **score(preds, gts), "fit_min_per_window": (res.fit_s + pres.fit_s) / 60,
             "render_s_per_image": float(np.median(secs)), "params": param_count(res.model.field) + pres.params,
             "colour_steps": ncfg.steps, "panoptic_steps": pcfg.steps, "rays_per_step": ncfg.rays_per_step,

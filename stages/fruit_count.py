@@ -15,8 +15,8 @@ from nerf.geometry import pose_matrix
 from pipeline.classes import DEFAULT_CLASSES, THING_IDS, class_name
 from pipeline.images import ImageError, read_label
 from pipeline.stage import StageContext
-from stages.panoptic_fusion import (DEPTH_SCALE_M, fit_sphere, id_colours, plausible_fit, principal_extents,
-                                   robust_centre, subsample, unproject)
+from nerf.surfaces import fit_sphere, plausible_fit, principal_extents, robust_centre, unproject
+from stages.panoptic_fusion import DEPTH_SCALE_M, id_colours, subsample
 
 INPUTS = ("frames", "nerf", "panoptic_frames", "panoptic", "fruit_slots")
 OUTPUTS = ("fruits", "counts", "fruit_map")

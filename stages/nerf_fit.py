@@ -170,7 +170,7 @@ def fit_one(payload: dict) -> dict:
     pan = None
     pcfg = payload["panoptic"]
     if pcfg.enabled:
-        from nerf.panoptic_fit import fit_panoptic, render_panoptic
+        from nerf.panoptic_fit import complete_instances, fit_panoptic, render_panoptic
 
         labels = load_labels(frames, pd.DataFrame(payload["detections"]) if payload["detections"] else None, data_root)
         try:
@@ -180,6 +180,9 @@ def fit_one(payload: dict) -> dict:
             raise RuntimeError(f"window {wid} (panoptic phase): {err}") from err
         state["panoptic"] = pan.state()
         validate(res, data, lambda i: render_panoptic(res.model, pan, i))
+        if pcfg.complete_3d:
+            val = [int(i) for i in np.flatnonzero(~data.is_train)]
+            complete_instances([res.renders[i] for i in val], data.intrinsics[val], res.poses_c2w[val], pan.cfg)
     torch.save(state, wdir / "checkpoint.pt")
     for i in np.flatnonzero(~data.is_train):
         out = res.renders[int(i)]

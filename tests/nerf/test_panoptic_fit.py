@@ -245,3 +245,54 @@ def test_thing_oversampling_is_undone_by_importance_weights():
     assert 0.45 < on.mean() < 0.55                # half the rays land on fruit ...
     assert abs((w * on).sum() / w.sum() - 0.01) < 0.003   # ... but weigh as 1 % of the image
     assert w.max() == 1.0 and (w > 0).all()
+
+
+def _sphere_view(centre: np.ndarray, radius: float, cam_x: float, h: int = 40, w: int = 60
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Depth [H, W] of a sphere (background wall at z = 2 m) seen by a camera at (cam_x, 0, 0) looking
+    along +z, the sphere mask, and the camera's c2w."""
+    k = np.array([50.0, 50.0, w / 2, h / 2])
+    v, u = np.mgrid[0:h, 0:w]
+    d = np.stack([(u + 0.5 - k[2]) / k[0], (v + 0.5 - k[3]) / k[1], np.ones((h, w))], -1)   # z = 1 rays
+    o = np.array([cam_x, 0.0, 0.0])
+    oc = o - centre
+    a, b, c = (d * d).sum(-1), 2 * (d * oc).sum(-1), oc @ oc - radius ** 2
+    disc = b * b - 4 * a * c
+    t = np.where(disc > 0, (-b - np.sqrt(np.maximum(disc, 0))) / (2 * a), np.inf)
+    hit = np.isfinite(t)
+    depth = np.where(hit, t, 2.0)                                   # z-depth (rays have z = 1)
+    c2w = np.eye(4)
+    c2w[0, 3] = cam_x
+    return depth, hit, c2w
+
+
+def test_complete_instances_gives_a_fruit_its_stuff_labelled_side_but_not_the_leaf_in_front():
+    from nerf.panoptic_fit import complete_instances
+
+    centre, radius = np.array([0.0, 0.0, 0.5]), 0.04
+    frames, poses = [], []
+    for cam_x in (-0.02, 0.0, 0.02):
+        depth, hit, c2w = _sphere_view(centre, radius, cam_x)
+        sem = np.where(hit, 2, 1).astype(np.uint8)
+        inst = np.where(hit, 7, 0).astype(np.int32)
+        frames.append({"semantic": sem, "instance": inst, "depth": depth})
+        poses.append(c2w)
+    last = frames[-1]
+    truth = last["instance"].copy()
+    cols = np.arange(truth.shape[1])[None, :].repeat(truth.shape[0], 0)
+    stuffed = (truth == 7) & (cols >= 30)                           # the head called half the fruit plant
+    last["instance"][stuffed], last["semantic"][stuffed] = 0, 1
+    leaf = (truth == 7) & (cols < 30) & (np.arange(truth.shape[0])[:, None] == 20)
+    last["depth"][leaf] = 0.3                                      # a leaf 15 cm in front of the fruit
+    last["instance"][leaf], last["semantic"][leaf] = 0, 1
+    other = (truth == 0) & (cols == 0)
+    last["instance"][other] = 9                                    # another instance's pixels stay its own
+    k = np.array([[50.0, 50.0, 30.0, 20.0]] * 3)
+    cfg = PanopticConfig(complete_margin_m=0.005, complete_min_points=50)
+    added = complete_instances(frames, k, np.stack(poses), cfg)
+    assert added == int(stuffed.sum())
+    assert (last["instance"][stuffed] == 7).all() and (last["semantic"][stuffed] == 2).all()
+    assert (last["instance"][leaf] == 0).all() and (last["instance"][other] == 9).all()
+    assert (last["instance"][(truth == 0) & ~other] == 0).all()     # the wall behind stays stuff
+    off = [dict(f, instance=f["instance"].copy()) for f in frames]
+    assert complete_instances(off, k, np.stack(poses), PanopticConfig(instances=False)) == 0
