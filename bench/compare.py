@@ -9,9 +9,10 @@ Methods (rows):
 - Panoptic-Lifting-like: our field, fixed poses, one shared grid for colour and panoptic, plain assignment;
 - ours S / ours L: the paper's presets with the colour step count of this run (L is left out with --quick or
   --no-L: on 2 CPU cores it takes about as long as all the other rows together);
-- ours cpu with three pose sources: odometry fixed, COLMAP (from colmap_poses.parquet when it covers the
-  window, else COLMAP is run on the window here; skipped with the reason when it registers nothing usable)
-  and online refinement (ours, the default).
+- ours cpu with four pose sources: odometry fixed, COLMAP (from colmap_poses.parquet when it covers the
+  window, else COLMAP is run on the window here; skipped with the reason when it registers nothing usable),
+  online refinement from the odometry (the paper's), and the pipeline's default: the odometry stretched by
+  its depth-measured scale, then refined online (S and L use that too).
 
 Columns of `compare.parquet` (one row per method and window): method, poses (pose source), window, status
 ('ok' or 'skipped'), note, psnr (dB, mean over the scored validation frames), pq, sq, rq, pq_things,
@@ -45,6 +46,7 @@ from bench._common import kept_frames, write_parquet
 from bench.ablation import ground_truth, score
 from nerf.baselines import PANOPTIC_LIFTING_LIKE, SEMANTIC_ONLY
 from nerf.config import NerfConfig, preset
+from nerf.depth_scale import odometry_scale, stretch
 from nerf.field import param_count
 from nerf.geometry import pose_matrix
 from nerf.panoptic_fit import PanopticConfig, WindowLabels, complete_instances, fit_panoptic, render_panoptic
@@ -54,6 +56,9 @@ from stages.colmap_poses import Config as ColmapConfig
 from stages.colmap_poses import window_colmap
 from stages.nerf_fit import initial_poses, load_labels, load_window
 
+DEPTH_SCALED = "depth scale + online refinement"
+"""the pipeline's default pose source: odometry stretched by its depth-measured scale (nerf/depth_scale.py),
+then refined online."""
 DEFAULT = dict(colour_steps=300, panoptic_steps=200, val_frames=5)
 QUICK = dict(colour_steps=100, panoptic_steps=100, val_frames=3)
 
@@ -95,14 +100,15 @@ def methods(colour_steps: int, with_l: bool) -> list[tuple[str, str, dict, dict]
         ("Semantic-NeRF-like", "odometry fixed", dict(preset="cpu", field_kind="mlp_pe", refine_poses=False),
          SEMANTIC_ONLY),
         ("Panoptic-Lifting-like", "odometry fixed", dict(preset="cpu", refine_poses=False), PANOPTIC_LIFTING_LIKE),
-        ("ours S", "online refinement", dict(preset="S"), {}),
+        ("ours S", DEPTH_SCALED, dict(preset="S"), {}),
     ]
     if with_l:
-        out.append(("ours L", "online refinement", dict(preset="L"), {}))
+        out.append(("ours L", DEPTH_SCALED, dict(preset="L"), {}))
     out += [
         ("ours cpu", "odometry fixed", dict(preset="cpu", refine_poses=False), {}),
         ("ours cpu", "COLMAP", dict(preset="cpu", refine_poses=False), {}),
         ("ours cpu", "online refinement", dict(preset="cpu"), {}),
+        ("ours cpu", DEPTH_SCALED, dict(preset="cpu"), {}),
     ]
     return out
 
@@ -154,6 +160,7 @@ def run(seq: str = "synth_row", windows_sel: list[int] | None = None, colour_ste
         det = score([(labels.semantic[i], labels.instance[i]) for i in val], gts)
         rows.append({"method": "detector input", "poses": "-", "status": "ok", "note": "", **det, **common})
         print(f"window {wid}: detector PQ {det['pq']:.3f} mIoU {det['miou']:.3f}", flush=True)
+        scale = None
         for name, poses, ncfg_kw, pcfg_kw in methods(colour_steps, with_l):
             kw = dict(ncfg_kw)
             ncfg = preset(kw.pop("preset"), **kw, steps=colour_steps, seed=wid)
@@ -166,6 +173,11 @@ def run(seq: str = "synth_row", windows_sel: list[int] | None = None, colour_ste
                     continue
                 d = copy.copy(data)
                 d.poses_c2w = pose_matrix(cw[["tx", "ty", "tz", "qx", "qy", "qz", "qw"]].to_numpy(np.float64))
+            if poses == DEPTH_SCALED:
+                if scale is None:
+                    scale = odometry_scale(data.depths, data.intrinsics, data.poses_c2w).scale
+                d = copy.copy(data)
+                d.poses_c2w = stretch(data.poses_c2w, scale)
             r = fit_and_score(d, labels, gts, ncfg, replace(base_p, **pcfg_kw))
             rows.append({"method": name, "poses": poses, "status": "ok", "note": why if poses == "COLMAP" else "",
                          **r, **common})

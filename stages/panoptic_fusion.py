@@ -32,6 +32,15 @@ class Config:
     max_match_distance_m: float = 0.04
     """two windows' slots are the same fruit only if their 3D centres are closer than this (about half a
     sweet-pepper diameter: neighbouring fruits never touch closer, centre estimates of one fruit agree)."""
+    strong_mask_overlap: float = 0.8
+    """two slots are the same fruit up to strong_match_distance_m apart when, on the frames both windows
+    rendered, this share of the smaller of the two masks lies inside the other (pooled over those frames;
+    also their IoU must reach min_mask_iou). A fruit a window sees only while it leaves or enters the image
+    gets a poor centre from that sliver (default row: 6.8 cm off), and a window renders a fruit it is losing
+    smaller than the next window does, so containment, not IoU, is the evidence (default row: IoU 0.49,
+    95 % of the smaller masks inside the larger)."""
+    strong_match_distance_m: float = 0.08
+    """the distance gate for slots whose masks overlap by strong_mask_overlap."""
     min_mask_iou: float = 0.3
     """on frames both windows rendered, the two slots' masks must overlap at least this much (IoU pooled
     over those frames); slots neither window shows there are matched on distance alone."""
@@ -63,6 +72,9 @@ class Config:
             raise ValueError(f"panoptic_fusion.max_match_distance_m must be > 0, got {self.max_match_distance_m}")
         if not 0.0 <= self.min_mask_iou <= 1.0:
             raise ValueError(f"panoptic_fusion.min_mask_iou must be in [0, 1], got {self.min_mask_iou}")
+        if not 0.0 <= self.strong_mask_overlap <= 1.0 or not self.strong_match_distance_m >= 0.0:
+            raise ValueError("panoptic_fusion.strong_mask_overlap must be in [0, 1] and strong_match_distance_m >= 0, "
+                             f"got {self.strong_mask_overlap}, {self.strong_match_distance_m}")
         if not self.max_fruit_radius_m > 0:
             raise ValueError(f"panoptic_fusion.max_fruit_radius_m must be > 0, got {self.max_fruit_radius_m}")
         if self.split_distance_m < 0 or self.min_slot_px < 1 or self.max_points_per_view < 1 or self.min_split_frames < 1:
@@ -262,13 +274,14 @@ def pair_cost(a: LocalFruit, b: LocalFruit, masks: dict[tuple[int, int], np.ndar
               part_of: dict[tuple[int, int, int], int], cfg: Config) -> float:
     """Matching cost of two local fruits of different windows (inf = not the same fruit):
     distance / gate + (1 - IoU) with IoU pooled over the frames both windows rendered (0.5 if neither
-    shows the fruit on any such frame)."""
+    shows the fruit on any such frame). Centres farther apart than cfg.max_match_distance_m still match, up
+    to cfg.strong_match_distance_m, when the smaller masks lie inside the other by cfg.strong_mask_overlap."""
     if a.centre is None or b.centre is None:
         return np.inf
     dist = centre_distance(a, b)
-    if dist > cfg.max_match_distance_m:
+    if dist > max(cfg.max_match_distance_m, cfg.strong_match_distance_m):
         return np.inf
-    inter = union = 0
+    inter = union = smaller = 0
     for (w, f), m in masks.items():
         if w != a.window_id or (b.window_id, f) not in masks:
             continue
@@ -276,12 +289,12 @@ def pair_cost(a: LocalFruit, b: LocalFruit, masks: dict[tuple[int, int], np.ndar
         mb = (masks[(b.window_id, f)] == b.slot) & (part_of.get((b.window_id, b.slot, f), -1) == b.part)
         inter += int(np.count_nonzero(ma & mb))
         union += int(np.count_nonzero(ma | mb))
-    if union == 0:
-        iou = 0.5
-    else:
-        iou = inter / union
-        if iou < cfg.min_mask_iou:
-            return np.inf
+        smaller += min(int(np.count_nonzero(ma)), int(np.count_nonzero(mb)))
+    iou = inter / union if union else 0.5
+    if union and iou < cfg.min_mask_iou:
+        return np.inf
+    if dist > cfg.max_match_distance_m and not (smaller and inter / smaller >= cfg.strong_mask_overlap):
+        return np.inf
     return dist / cfg.max_match_distance_m + (1.0 - iou)
 
 
@@ -299,8 +312,8 @@ def associate(fruits: list[LocalFruit], masks: dict[tuple[int, int], np.ndarray]
     for a_i, wa in enumerate(wids):
         for wb in wids[a_i + 1:]:
             ia, ib = by_window[wa], by_window[wb]
-            near = np.array([[centre_distance(fruits[i], fruits[j]) <= cfg.max_match_distance_m for j in ib]
-                             for i in ia])
+            gate = max(cfg.max_match_distance_m, cfg.strong_match_distance_m)
+            near = np.array([[centre_distance(fruits[i], fruits[j]) <= gate for j in ib] for i in ia])
             if not near.any():
                 continue
             cost = np.full(near.shape, np.inf)

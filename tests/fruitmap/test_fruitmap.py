@@ -170,6 +170,26 @@ def test_fusion_uses_mask_overlap_on_shared_frames():
     assert panoptic_fusion.pair_cost(a, b, {(0, 4): m_a, (1, 4): m_b}, part_of, cfg) == np.inf
 
 
+def test_a_sliver_with_a_poor_centre_still_joins_the_fruit_whose_mask_holds_it():
+    cfg = panoptic_fusion.Config(max_match_distance_m=0.04, min_mask_iou=0.3, strong_mask_overlap=0.8,
+                                 strong_match_distance_m=0.08)
+    a = panoptic_fusion.LocalFruit(0, 3, 0, [4], 50, 2, np.zeros(3))
+    far = panoptic_fusion.LocalFruit(1, 8, 0, [4], 50, 2, np.array([0.06, 0.0, 0.0]))   # 6 cm: a sliver's centre
+    m_a, m_b = np.zeros((6, 6), np.int32), np.zeros((6, 6), np.int32)
+    m_a[:3, :3], m_b[:3, :2] = 3, 8                                   # the other window renders it smaller
+    part_of = {(0, 3, 4): 0, (1, 8, 4): 0}
+    masks = {(0, 4): m_a, (1, 4): m_b}
+    assert np.isfinite(panoptic_fusion.pair_cost(a, far, masks, part_of, cfg))
+    m_b[:] = 0
+    m_b[:3, 2:4] = 8                                                  # half outside: the 4 cm gate holds
+    assert panoptic_fusion.pair_cost(a, far, masks, part_of, cfg) == np.inf
+    assert panoptic_fusion.pair_cost(a, far, {(0, 4): m_a}, part_of, cfg) == np.inf   # no shared frame
+    too_far = panoptic_fusion.LocalFruit(1, 8, 0, [4], 50, 2, np.array([0.09, 0.0, 0.0]))
+    m_b[:] = 0
+    m_b[:3, :3] = 8
+    assert panoptic_fusion.pair_cost(a, too_far, masks, part_of, cfg) == np.inf
+
+
 def test_failed_and_unrendered_windows_are_skipped_with_a_note(make_row):
     row = make_row()
     m = pd.read_parquet(row.processed / "window_metrics.parquet")
