@@ -22,9 +22,12 @@ shift r_l (d = 3, elevated coordinates live on the plane x0 + x1 + x2 + x3 = 0):
 4 table reads per point and level, where the cubic grid needs 8. With the ranks fixed the weights
 are linear in E, so d feature / d E_i = (table[v_{3-rank_i}] - table[v_{(4-rank_i) mod 4}]) / 4,
 chained through steps 2 and 1 (this is what the kernel computes for d/dx). Measured on 2-core CPUs
-with cache-resident level tables (2^18 x 2 floats), the fused lattice is 1.1-1.3x faster than the
-fused cubic grid per training step, not 2x: its arithmetic costs about 5x the trilinear weights',
-and with this hash the cubic grid's 8 corners fall on about 4.5 distinct cache lines.
+with cache-resident level tables (2^18 x 2 floats), the fused lattice is about 1.2-1.4x faster than
+the fused cubic grid per training step, not 2x: with this hash the cubic grid's 8 corners fall on
+about 4.5 distinct cache lines (neighbours along axis 0 share one) against the lattice's 4, so both
+move about as many bytes; the lattice saves 4 of 8 gathers and scatters, and its arithmetic (about
+11 AVX-512 instructions per point and level: quarter units, a sorting network, premultiplied
+primes, see nerf/csrc/) has to stay cheaper than that.
 
 Worked example: one level, sigma = 1, r = 0, p = 0 gives E = 0, rem0 = 0, all ranks resolve to
 (0, 1, 2, 3) and w = (1, 0, 0, 0): the point sits on vertex 0, key (0, 0, 0), row h = 0.
@@ -48,9 +51,11 @@ ELEV = (1 / math.sqrt(2), 1 / math.sqrt(6), 1 / math.sqrt(12))  # 1 / sqrt((i+1)
 MAX_LATTICE_COORD = 2.0 ** 18  # |p| is clamped to this many finest cells
 # CPU kernels, d/dx: the forward also writes the [3, F] Jacobian of each point and level from the rows
 # it reads (True: 12 F bytes per point and level, held until the backward), or the backward reads
-# the rows again (False: no extra memory). True measured 15-20% faster per training step on 2-core
-# Zen 1 VMs (2^16 points, 16 levels, T = 2^18), for both lattices.
-JACOBIAN_IN_FORWARD = True
+# the rows again (False: no extra memory). Machine-dependent (2^16 points, 16 levels, T = 2^18, both
+# lattices alike): True was 15-20% faster per training step on 2-core Zen 1 VMs; False is 10-25%
+# faster on 2-core Sapphire Rapids VMs (2 MiB L2), where writing the Jacobian costs more than
+# reading the rows again.
+JACOBIAN_IN_FORWARD = False
 
 
 def permuto_coefficients(scales: Tensor) -> Tensor:
@@ -131,9 +136,10 @@ def cubic_encode_reference(x: Tensor, table: Tensor, scales: Tensor, shifts: Ten
 
 
 class _FusedEncode(torch.autograd.Function):
-    """The C++/CUDA kernels as one autograd node. When x requires grad, the CPU forward also returns
-    d features / d x ([L, 3 F, N], read while the table rows are in cache) and the backward
-    contracts it with grad_out; the CUDA kernels return None there and recompute instead."""
+    """The C++/CUDA kernels as one autograd node. When x requires grad and need_jac (see
+    JACOBIAN_IN_FORWARD), the CPU forward also returns d features / d x ([L, 3 F, N], read while the
+    table rows are in cache) and the backward contracts it with grad_out; otherwise (and always on
+    CUDA, whose kernels return None there) the backward reads the rows again."""
 
     @staticmethod
     def forward(ctx, x: Tensor, table: Tensor, coef: Tensor, shifts: Tensor, ext, kind: str, need_jac: bool) -> Tensor:

@@ -7,21 +7,23 @@
 // per-axis factor: 1 / (sqrt((i+1)(i+2)) sigma_l) for the lattice, 1 / sigma_l for the cubic grid),
 // shifts [L, 3]. Output [N, L * F], level-major within a row.
 //
-// What makes it fast (DESIGN section 8, measured on 2-core Zen 1 VMs):
+// What makes it fast (DESIGN section 8, measured on 2-core Zen 1 and Sapphire Rapids VMs):
 // - Work is split by LEVEL (one OpenMP task per level, finest first): a level's table stays in
 //   cache while all points pass, and its gradient slice has a single writer, so no atomics, no
 //   per-thread copies of the table gradient and no reduction pass; the slice is zeroed by that
 //   writer just before use. Results do not depend on the thread count.
 // - Points go through in blocks: the simplices of block k+1 are computed (vectorised) and their
 //   table rows prefetched before block k is gathered, so many random reads are in flight.
-// - When x requires grad, the forward also writes d features / d x (a [3, F] Jacobian per point
-//   and level, from the rows it has just read); the backward contracts it with grad_out in a
-//   streaming pass instead of a second round of random table reads.
+// - When x requires grad, either the forward also writes d features / d x (a [3, F] Jacobian per
+//   point and level, from the rows it has just read) and the backward contracts it with grad_out in
+//   a streaming pass, or the backward reads the rows again next to its table-gradient scatter;
+//   which is faster depends on the machine (JACOBIAN_IN_FORWARD in nerf/encoding.py).
 // - Features are produced into / consumed from a level-major [L, N, F] scratch, transposed once,
 //   instead of striding through the [N, L * F] rows once per level.
 // - No page faults in steady state: outputs come from a small pool of blocks, scratch is kept.
 // - Power-of-two masks, constants hoisted per level, no libm calls, the feature count a
-//   compile-time constant for F in {1, 2, 4, 8}; an AVX2 build of the same code picked at run time.
+//   compile-time constant for F in {1, 2, 4, 8}; AVX2 and AVX-512 builds of the same code picked at
+//   run time.
 #include <torch/extension.h>
 #include <ATen/Parallel.h>
 #include <omp.h>
@@ -36,8 +38,9 @@
 #include <unordered_map>
 #include <vector>
 
-// The per-level kernels, compiled for baseline x86-64 and, on x86, once more for AVX2 (8-wide
-// lattice arithmetic; no FMA, so results are bit-identical); the CPU is asked at run time.
+// The per-level kernels, compiled for baseline x86-64 and, on x86, once more for AVX2 (8-wide) and
+// once for AVX-512 (16-wide, 32 vector registers: the lattice arithmetic of a block without
+// spills); no FMA, so all three give bit-identical results. The CPU is asked at run time.
 namespace base {
 #include "permuto_cpu_kernels.h"
 }  // namespace base
@@ -48,25 +51,51 @@ namespace avx2 {
 #include "permuto_cpu_kernels.h"
 }  // namespace avx2
 #pragma GCC pop_options
-#define PAG_HAVE_AVX2 1
+#pragma GCC push_options
+#pragma GCC target("avx2,avx512f,avx512vl,avx512bw,avx512dq,prefer-vector-width=512")
+namespace avx512 {
+#include "permuto_cpu_kernels.h"
+}  // namespace avx512
+#pragma GCC pop_options
+#define PAG_HAVE_X86_VARIANTS 1
 #endif
 
 namespace {
 
 using base::BLOCK;
 
-bool use_avx2() {
-#ifdef PAG_HAVE_AVX2
-  static const bool ok = __builtin_cpu_supports("avx2") && std::getenv("PAG_NO_AVX2") == nullptr;
-  return ok;
+enum class Isa { base, avx2, avx512 };
+
+// The widest build this CPU runs; PAG_NO_AVX512=1 / PAG_NO_AVX2=1 step down (tests run every build).
+Isa isa() {
+#ifdef PAG_HAVE_X86_VARIANTS
+  static const Isa v = [] {
+    if (std::getenv("PAG_NO_AVX2") != nullptr || !__builtin_cpu_supports("avx2")) return Isa::base;
+    const bool avx512 = __builtin_cpu_supports("avx512f") && __builtin_cpu_supports("avx512vl") &&
+                        __builtin_cpu_supports("avx512bw") && __builtin_cpu_supports("avx512dq");
+    return avx512 && std::getenv("PAG_NO_AVX512") == nullptr ? Isa::avx512 : Isa::avx2;
+  }();
+  return v;
 #else
-  return false;
+  return Isa::base;
 #endif
 }
 
-#ifdef PAG_HAVE_AVX2
-avx2::LevelArgs avx2_args(const base::LevelArgs& a) { return {a.x, a.n, a.table, a.shift, a.coef, a.mask}; }
+// Runs CALL with `ns` naming the kernels' namespace for this CPU.
+#ifdef PAG_HAVE_X86_VARIANTS
+#define PAG_DISPATCH(CALL)                                                  \
+  switch (isa()) {                                                          \
+    case Isa::avx512: { namespace ns = avx512; CALL; } break;               \
+    case Isa::avx2: { namespace ns = avx2; CALL; } break;                   \
+    default: { namespace ns = base; CALL; } break;                          \
+  }
+#else
+#define PAG_DISPATCH(CALL) { namespace ns = base; CALL; }
 #endif
+
+// The level arguments as the variant's own (layout-identical) struct.
+template <class Args>
+Args args_as(const base::LevelArgs& a) { return {a.x, a.n, a.table, a.shift, a.coef, a.mask}; }
 
 template <class Fn>
 void dispatch_features(int64_t f, Fn&& fn) {
@@ -82,22 +111,13 @@ void dispatch_features(int64_t f, Fn&& fn) {
 // One level's passes through the right instruction set and feature count.
 enum class Kind { permuto, cubic };
 
-#ifdef PAG_HAVE_AVX2
-#define PAG_DISPATCH(call_base, call_avx2) \
-  if (use_avx2()) { call_avx2; } else { call_base; }
-#else
-#define PAG_DISPATCH(call_base, call_avx2) call_base;
-#endif
-
 void forward_level(Kind kind, const base::LevelArgs& a, int64_t F, float* out, float* jac) {
   dispatch_features(F, [&](auto fs) {
     constexpr int FS = decltype(fs)::value;
     if (kind == Kind::permuto) {
-      PAG_DISPATCH((base::forward_level<base::Permuto, FS>(a, (int)F, out, jac)),
-                   (avx2::forward_level<avx2::Permuto, FS>(avx2_args(a), (int)F, out, jac)))
+      PAG_DISPATCH((ns::forward_level<ns::Permuto, FS>(args_as<ns::LevelArgs>(a), (int)F, out, jac)))
     } else {
-      PAG_DISPATCH((base::forward_level<base::Cubic, FS>(a, (int)F, out, jac)),
-                   (avx2::forward_level<avx2::Cubic, FS>(avx2_args(a), (int)F, out, jac)))
+      PAG_DISPATCH((ns::forward_level<ns::Cubic, FS>(args_as<ns::LevelArgs>(a), (int)F, out, jac)))
     }
   });
 }
@@ -106,11 +126,9 @@ void backward_level(Kind kind, const base::LevelArgs& a, int64_t F, const float*
   dispatch_features(F, [&](auto fs) {
     constexpr int FS = decltype(fs)::value;
     if (kind == Kind::permuto) {
-      PAG_DISPATCH((base::backward_level<base::Permuto, FS>(a, (int)F, g, gtab, gxp)),
-                   (avx2::backward_level<avx2::Permuto, FS>(avx2_args(a), (int)F, g, gtab, gxp)))
+      PAG_DISPATCH((ns::backward_level<ns::Permuto, FS>(args_as<ns::LevelArgs>(a), (int)F, g, gtab, gxp)))
     } else {
-      PAG_DISPATCH((base::backward_level<base::Cubic, FS>(a, (int)F, g, gtab, gxp)),
-                   (avx2::backward_level<avx2::Cubic, FS>(avx2_args(a), (int)F, g, gtab, gxp)))
+      PAG_DISPATCH((ns::backward_level<ns::Cubic, FS>(args_as<ns::LevelArgs>(a), (int)F, g, gtab, gxp)))
     }
   });
 }
@@ -118,7 +136,7 @@ void backward_level(Kind kind, const base::LevelArgs& a, int64_t F, const float*
 void contract_level(int64_t n, int64_t F, const float* g, const float* jac, float* gxp) {
   dispatch_features(F, [&](auto fs) {
     constexpr int FS = decltype(fs)::value;
-    PAG_DISPATCH((base::contract_level<FS>(n, (int)F, g, jac, gxp)), (avx2::contract_level<FS>(n, (int)F, g, jac, gxp)))
+    PAG_DISPATCH((ns::contract_level<FS>(n, (int)F, g, jac, gxp)))
   });
 }
 
@@ -220,17 +238,31 @@ int threads_for(int64_t items) {
   return (int)std::max<int64_t>(1, std::min<int64_t>(at::get_num_threads(), items));
 }
 
+// Rows i0..i1 of the longer of A and B (the points) of a [A, B, F] -> [B, A, F] transpose; each
+// point's elements are read or written contiguously, each element (F floats) as one load and store.
+template <int FS>
+void transpose_rows(const float* __restrict src, float* __restrict dst, int64_t A, int64_t B, int64_t f_rt,
+                    int64_t i0, int64_t i1) {
+  const int64_t F = FS ? FS : f_rt;
+  if (B >= A) {
+    for (int64_t b = i0; b < i1; ++b)
+      for (int64_t a = 0; a < A; ++a) std::memcpy(dst + (b * A + a) * F, src + (a * B + b) * F, sizeof(float) * F);
+  } else {
+    for (int64_t a = i0; a < i1; ++a)
+      for (int64_t b = 0; b < B; ++b) std::memcpy(dst + (b * A + a) * F, src + (a * B + b) * F, sizeof(float) * F);
+  }
+}
+
 // [A, B, F] -> [B, A, F] in parallel (the level-major scratch <-> the [N, L * F] layout).
 void transpose_outer(const float* src, float* dst, int64_t A, int64_t B, int64_t F) {
   constexpr int64_t CHUNK = 256;
-  const int64_t nchunks = (B + CHUNK - 1) / CHUNK;
-#pragma omp parallel for num_threads(threads_for(nchunks)) schedule(static)
-  for (int64_t c = 0; c < nchunks; ++c) {
-    const int64_t b0 = c * CHUNK, b1 = std::min(B, b0 + CHUNK);
-    for (int64_t a = 0; a < A; ++a)
-      for (int64_t b = b0; b < b1; ++b)
-        for (int64_t f = 0; f < F; ++f) dst[(b * A + a) * F + f] = src[(a * B + b) * F + f];
-  }
+  const int64_t n = std::max(A, B), nchunks = (n + CHUNK - 1) / CHUNK;
+  dispatch_features(F, [&](auto fs) {
+    constexpr int FS = decltype(fs)::value;
+#pragma omp parallel for num_threads(threads_for(nchunks / 16 + 1)) schedule(static)
+    for (int64_t c = 0; c < nchunks; ++c)
+      transpose_rows<FS>(src, dst, A, B, F, c * CHUNK, std::min(n, (c + 1) * CHUNK));
+  });
 }
 
 // x [N, 3] -> blocked structure of arrays (block b: [3][BLOCK] at 3 * b * BLOCK, zero-padded), the
@@ -358,7 +390,8 @@ std::vector<torch::Tensor> cubic_backward(torch::Tensor grad_out, torch::Tensor 
   return backward_impl(Kind::cubic, grad_out, x, table, coef, shifts, jac, need_table, need_x);
 }
 
-// Hashed rows and barycentric weights of one level's simplices, from the kernel's own code (tests):
+// Hashed rows and barycentric weights of one level's simplices, from the kernel's own code (the
+// build this CPU runs; tests):
 // x [N, 3], coef [3], shift [3] -> ([N, 4] int64, [N, 4] float32).
 std::vector<torch::Tensor> permuto_simplices(torch::Tensor x, torch::Tensor coef, torch::Tensor shift, int64_t capacity) {
   TORCH_CHECK(x.scalar_type() == torch::kFloat32 && x.dim() == 2 && x.size(1) == 3, "x must be float32 [N, 3]");
@@ -367,18 +400,19 @@ std::vector<torch::Tensor> permuto_simplices(torch::Tensor x, torch::Tensor coef
   const int64_t N = x.size(0);
   auto rows = torch::empty({N, 4}, x.options().dtype(torch::kInt64));
   auto w = torch::empty({N, 4}, x.options());
-  base::Permuto::Stage s;
   const float* xs = blocked_points(x);
-  for (int64_t n0 = 0; n0 < N; n0 += BLOCK) {
-    const int64_t nb = std::min<int64_t>(BLOCK, N - n0);
-    base::Permuto::locate(xs + 3 * n0, nb, shift.data_ptr<float>(), coef.data_ptr<float>(),
-                          (uint32_t)(capacity - 1), s);
-    for (int64_t j = 0; j < nb; ++j)
-      for (int k = 0; k < 4; ++k) {
-        rows.data_ptr<int64_t>()[4 * (n0 + j) + k] = s.row[k][j];
-        w.data_ptr<float>()[4 * (n0 + j) + k] = s.w[k][j];
-      }
-  }
+  PAG_DISPATCH({
+    ns::Permuto::Stage s;
+    for (int64_t n0 = 0; n0 < N; n0 += BLOCK) {
+      const int64_t nb = std::min<int64_t>(BLOCK, N - n0);
+      ns::Permuto::locate(xs + 3 * n0, nb, shift.data_ptr<float>(), coef.data_ptr<float>(), (uint32_t)(capacity - 1), s);
+      for (int64_t j = 0; j < nb; ++j)
+        for (int k = 0; k < 4; ++k) {
+          rows.data_ptr<int64_t>()[4 * (n0 + j) + k] = s.row[k][j];
+          w.data_ptr<float>()[4 * (n0 + j) + k] = s.w[k][j];
+        }
+    }
+  })
   return {rows, w};
 }
 

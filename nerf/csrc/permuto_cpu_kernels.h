@@ -7,7 +7,8 @@
 // with a loop that has no data-dependent indexing, so the compiler vectorises it (selects, never
 // arrays indexed by rank: GCC gives up on those); the block's table rows are prefetched, and the
 // block is gathered or scattered DEPTH - 1 blocks later, so many random reads are in flight.
-// BLOCK and DEPTH were tuned on 2-core Zen 1 VMs (2 MiB level tables, 512 KiB L2, 8 MiB L3).
+// BLOCK and DEPTH were tuned on 2-core Zen 1 VMs (2 MiB level tables, 512 KiB L2, 8 MiB L3) and
+// rechecked on 2-core Sapphire Rapids VMs (2 MiB L2): DEPTH 2 is slower there, 4 no faster.
 
 #ifndef PAG_BLOCK
 #define PAG_BLOCK 16
@@ -43,47 +44,52 @@ struct Permuto {
   };
 
   // x: this block's points, blocked structure of arrays ([3][BLOCK], see LevelArgs).
+  // Works in quarter units e = E / 4 (coef / 4: exact, scaling by a power of two commutes with
+  // rounding), so rem0 / 4 = round(e) and t = e - rem0 / 4 cost no multiplies; the results are
+  // bit-identical to the reference's.
   static void locate(const float* x, int64_t nb, const float* sh, const float* cf, uint32_t mask, Stage& s) {
-    const float sh0 = sh[0], sh1 = sh[1], sh2 = sh[2], cf0 = cf[0], cf1 = cf[1], cf2 = cf[2];
+    const float sh0 = sh[0], sh1 = sh[1], sh2 = sh[2];
+    const float cq0 = 0.25f * cf[0], cq1 = 0.25f * cf[1], cq2 = 0.25f * cf[2];
     constexpr float MAGIC = 12582912.f;  // 1.5 * 2^23: (v + MAGIC) - MAGIC = v rounded, ties to even
     for (int64_t j = 0; j < nb; ++j) {
-      const float c0 = (x[j] + sh0) * cf0;
-      const float c1 = (x[BLOCK + j] + sh1) * cf1;
-      const float c2 = (x[2 * BLOCK + j] + sh2) * cf2;
+      const float c0 = (x[j] + sh0) * cq0;
+      const float c1 = (x[BLOCK + j] + sh1) * cq1;
+      const float c2 = (x[2 * BLOCK + j] + sh2) * cq2;
       const float e0 = c0 + c1 + c2, e1 = c1 + c2 - c0, e2 = c2 - 2.f * c1, e3 = -3.f * c2;
-      // rem0 = 4 q, q = round(E / 4); r = E - rem0 is exact (Sterbenz)
-      const float q0 = (e0 * 0.25f + MAGIC) - MAGIC, q1 = (e1 * 0.25f + MAGIC) - MAGIC;
-      const float q2 = (e2 * 0.25f + MAGIC) - MAGIC, q3 = (e3 * 0.25f + MAGIC) - MAGIC;
-      const float r0 = e0 - 4.f * q0, r1 = e1 - 4.f * q1, r2 = e2 - 4.f * q2, r3 = e3 - 4.f * q3;
+      const float q0 = (e0 + MAGIC) - MAGIC, q1 = (e1 + MAGIC) - MAGIC;  // rem0 = 4 q
+      const float q2 = (e2 + MAGIC) - MAGIC, q3 = (e3 + MAGIC) - MAGIC;
+      const float r0 = e0 - q0, r1 = e1 - q1, r2 = e2 - q2, r3 = e3 - q3;  // exact (Sterbenz)
       const int32_t S = (int32_t)((q0 + q1) + (q2 + q3));
-      // rank_i = S + #{j: r_j > r_i} + #{j < i: r_j == r_i}
+      // k_i = S + #{j: r_j > r_i} + #{j < i: r_j == r_i}, in -2..5 (|S| <= 2)
       const int32_t l01 = r0 < r1, l02 = r0 < r2, l03 = r0 < r3, l12 = r1 < r2, l13 = r1 < r3, l23 = r2 < r3;
-      int32_t k0 = S + l01 + l02 + l03;
-      int32_t k1 = S + 1 - l01 + l12 + l13;
-      int32_t k2 = S + 2 - l02 - l12 + l23;
-      int32_t k3 = S + 3 - l03 - l13 - l23;
-      // wrap into 0..3, moving rem0 by +-4
-      const int32_t d0 = 4 * ((k0 < 0) - (k0 > 3)), d1 = 4 * ((k1 < 0) - (k1 > 3));
-      const int32_t d2 = 4 * ((k2 < 0) - (k2 > 3)), d3 = 4 * ((k3 < 0) - (k3 > 3));
-      k0 += d0; k1 += d1; k2 += d2; k3 += d3;
-      const int32_t m0 = 4 * (int32_t)q0 + d0, m1 = 4 * (int32_t)q1 + d1, m2 = 4 * (int32_t)q2 + d2;
-      // t = (E - rem0) / 4 with the wrapped rem0: r - d rounds once, like E - (rem0 + d)
-      const float t0 = (r0 - (float)d0) * 0.25f, t1 = (r1 - (float)d1) * 0.25f;
-      const float t2 = (r2 - (float)d2) * 0.25f, t3 = (r3 - (float)d3) * 0.25f;
-      // tr[r] = t_i of the i with rank_i == r (ranks are a permutation of 0..3)
-      float tr[4];
-      for (int r = 0; r < 4; ++r)
-        tr[r] = (k0 == r ? t0 : 0.f) + (k1 == r ? t1 : 0.f) + (k2 == r ? t2 : 0.f) + (k3 == r ? t3 : 0.f);
+      const int32_t k0 = S + l01 + l02 + l03;
+      const int32_t k1 = S + 1 - l01 + l12 + l13;
+      const int32_t k2 = S + 2 - l02 - l12 + l23;
+      const int32_t k3 = S + 3 - l03 - l13 - l23;
+      // wrap: rank = k mod 4 while rem0 moves by -4 u, u = floor(k / 4) in {-1, 0, 1}
+      const int32_t u0 = k0 >> 2, u1 = k1 >> 2, u2 = k2 >> 2, u3 = k3 >> 2;
+      const int32_t k0w = k0 & 3, k1w = k1 & 3, k2w = k2 & 3, k3w = k3 & 3;
+      // t_i = (E_i - rem0_i) / 4 = r_i + u_i (one rounding, as in the reference)
+      const float t0 = r0 + (float)u0, t1 = r1 + (float)u1, t2 = r2 + (float)u2, t3 = r3 + (float)u3;
+      // the ranks order the t descending, so t by rank is t sorted: a 5-comparator network
+      const float a = std::max(t0, t1), b = std::min(t0, t1), c = std::max(t2, t3), d = std::min(t2, t3);
+      const float lo = std::min(a, c), hi = std::max(b, d);
+      const float s0 = std::max(a, c), s1 = std::max(lo, hi), s2 = std::min(lo, hi), s3 = std::min(b, d);
       // b[3 - rank_i] += t_i; b[4 - rank_i] -= t_i; w0 = (b0 + 1) + b4
-      s.w[0][j] = (tr[3] + 1.f) + (-tr[0]);
-      s.w[1][j] = tr[2] - tr[3];
-      s.w[2][j] = tr[1] - tr[2];
-      s.w[3][j] = tr[0] - tr[1];
-      // vertex k: key_i = rem0_i + k - 4 [rank_i > 3 - k]; vertex 0 is rem0 itself
-      s.row[0][j] = hash3(m0, m1, m2, mask);
+      s.w[0][j] = (s3 + 1.f) + (-s0);
+      s.w[1][j] = s2 - s3;
+      s.w[2][j] = s1 - s2;
+      s.w[3][j] = s0 - s1;
+      // vertex k: key_i = rem0_i + k - 4 [rank_i > 3 - k]. The hash is linear in each key mod 2^32,
+      // so the primes multiply rem0 once and the vertex offsets are constants.
+      const uint32_t h0 = (uint32_t)(4 * ((int32_t)q0 - u0));
+      const uint32_t h1 = (uint32_t)(4 * ((int32_t)q1 - u1)) * P1;
+      const uint32_t h2 = (uint32_t)(4 * ((int32_t)q2 - u2)) * P2;
+      s.row[0][j] = (h0 ^ h1 ^ h2) & mask;
       for (int k = 1; k < 4; ++k)
-        s.row[k][j] = hash3(m0 + k - 4 * (k0 > 3 - k), m1 + k - 4 * (k1 > 3 - k), m2 + k - 4 * (k2 > 3 - k), mask);
-      s.rank[0][j] = k0; s.rank[1][j] = k1; s.rank[2][j] = k2; s.rank[3][j] = k3;
+        s.row[k][j] = ((h0 + k - (k0w > 3 - k ? 4u : 0u)) ^ (h1 + k * P1 - (k1w > 3 - k ? 4u * P1 : 0u)) ^
+                       (h2 + k * P2 - (k2w > 3 - k ? 4u * P2 : 0u))) & mask;
+      s.rank[0][j] = k0w; s.rank[1][j] = k1w; s.rank[2][j] = k2w; s.rank[3][j] = k3w;
     }
   }
 
@@ -137,10 +143,12 @@ struct Cubic {
         fr[d] = q - (float)i0[d];
         s.frac[d][j] = fr[d];
       }
+      // the hash is linear in each key mod 2^32: the primes multiply the cell's corner once
+      const uint32_t hx = (uint32_t)i0[0], hy = (uint32_t)i0[1] * P1, hz = (uint32_t)i0[2] * P2;
       for (int k = 0; k < 8; ++k) {
         const int dx = k & 1, dy = (k >> 1) & 1, dz = (k >> 2) & 1;
         s.w[k][j] = (dx ? fr[0] : 1.f - fr[0]) * (dy ? fr[1] : 1.f - fr[1]) * (dz ? fr[2] : 1.f - fr[2]);
-        s.row[k][j] = hash3(i0[0] + dx, i0[1] + dy, i0[2] + dz, mask);
+        s.row[k][j] = ((hx + dx) ^ (hy + (dy ? P1 : 0u)) ^ (hz + (dz ? P2 : 0u))) & mask;
       }
     }
   }

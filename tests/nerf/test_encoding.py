@@ -227,12 +227,20 @@ def test_half_precision_autocast_and_huge_coordinates_stay_finite(backend):
     assert torch.isfinite(y).all() and torch.isfinite(enc.table.grad).all() and torch.isfinite(x.grad).all()
 
 
-def test_plain_x86_build_matches_the_reference():
-    """The kernels are compiled twice (baseline x86-64 and AVX2, picked at run time); run the baseline
-    ones in a subprocess (PAG_NO_AVX2=1) so that both are held to the reference."""
+@pytest.mark.parametrize("env", [{"PAG_NO_AVX2": "1"}, {"PAG_NO_AVX512": "1"}], ids=["baseline", "avx2"])
+def test_narrower_x86_builds_match_the_reference(env):
+    """The kernels are compiled three times (baseline x86-64, AVX2, AVX-512, the widest the CPU runs
+    picked at run time); run the narrower ones in a subprocess so that each is held to the reference,
+    its lattice arithmetic bit for bit."""
     fused_ext()
     code = ("import torch\n"
-            "from nerf.encoding import PermutoEncoding, CubicHashEncoding\n"
+            "from nerf._ext import load_permuto_ext\n"
+            "from nerf.encoding import PermutoEncoding, CubicHashEncoding, lattice, permuto_coefficients\n"
+            "x = torch.rand(2000, 3) * 2 - 1\n"
+            "coef, shift = permuto_coefficients(torch.tensor([0.05])), torch.tensor([[0.1, 0.2, 0.3]])\n"
+            "rows, w = load_permuto_ext('cpu').permuto_simplices(x, coef[0], shift[0], 1024)\n"
+            "ref_rows, ref_w = lattice(x, coef, shift, 1023)\n"
+            "assert torch.equal(rows, ref_rows[0]) and torch.equal(w, ref_w[0])\n"
             "for cls in (PermutoEncoding, CubicHashEncoding):\n"
             "    kw = dict(n_levels=6, log2_capacity=10, finest_scale=0.01, init_std=1.0)\n"
             "    f, r = cls(**kw, backend='fused'), cls(**kw, backend='torch')\n"
@@ -242,7 +250,7 @@ def test_plain_x86_build_matches_the_reference():
             "    assert torch.allclose(f.table.grad, r.table.grad, atol=1e-5), cls\n"
             "    assert torch.allclose(x1.grad, x2.grad, rtol=1e-4, atol=1e-3), cls\n"
             "print('ok')\n")
-    env = os.environ | {"PAG_NO_AVX2": "1", "PYTHONPATH": str(ROOT)}
+    env = os.environ | env | {"PYTHONPATH": str(ROOT)}
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, cwd=ROOT, timeout=600)
     assert done.returncode == 0 and "ok" in done.stdout, done.stderr[-2000:]
 
