@@ -11,8 +11,8 @@ Methods (rows):
   --no-L: on 2 CPU cores it takes about as long as all the other rows together);
 - ours cpu with four pose sources: odometry fixed, COLMAP (from colmap_poses.parquet when it covers the
   window, else COLMAP is run on the window here; skipped with the reason when it registers nothing usable),
-  online refinement from the odometry (the paper's), and the pipeline's default: the odometry stretched by
-  its depth-measured scale, then refined online (S and L use that too).
+  online refinement from the odometry (the paper's), and the pipeline's default: the odometry corrected
+  with depth ICP, then refined online (S and L use that too).
 
 Columns of `compare.parquet` (one row per method and window): method, poses (pose source), window, status
 ('ok' or 'skipped'), note, psnr (dB, mean over the scored validation frames), pq, sq, rq, pq_things,
@@ -46,7 +46,7 @@ from bench._common import kept_frames, write_parquet
 from bench.ablation import ground_truth, score
 from nerf.baselines import PANOPTIC_LIFTING_LIKE, SEMANTIC_ONLY
 from nerf.config import NerfConfig, preset
-from nerf.depth_scale import odometry_scale, stretch
+from nerf.depth_poses import depth_initial_poses
 from nerf.field import param_count
 from nerf.geometry import pose_matrix
 from nerf.panoptic_fit import PanopticConfig, WindowLabels, complete_instances, fit_panoptic, render_panoptic
@@ -56,8 +56,8 @@ from stages.colmap_poses import Config as ColmapConfig
 from stages.colmap_poses import window_colmap
 from stages.nerf_fit import initial_poses, load_labels, load_window
 
-DEPTH_SCALED = "depth scale + online refinement"
-"""the pipeline's default pose source: odometry stretched by its depth-measured scale (nerf/depth_scale.py),
+DEPTH_SCALED = "depth ICP + online refinement"
+"""the pipeline's default pose source: the odometry corrected with depth ICP (nerf/depth_poses.py, 'icp'),
 then refined online."""
 DEFAULT = dict(colour_steps=300, panoptic_steps=200, val_frames=5)
 QUICK = dict(colour_steps=100, panoptic_steps=100, val_frames=3)
@@ -160,7 +160,7 @@ def run(seq: str = "synth_row", windows_sel: list[int] | None = None, colour_ste
         det = score([(labels.semantic[i], labels.instance[i]) for i in val], gts)
         rows.append({"method": "detector input", "poses": "-", "status": "ok", "note": "", **det, **common})
         print(f"window {wid}: detector PQ {det['pq']:.3f} mIoU {det['miou']:.3f}", flush=True)
-        scale = None
+        icp_poses = None
         for name, poses, ncfg_kw, pcfg_kw in methods(colour_steps, with_l):
             kw = dict(ncfg_kw)
             ncfg = preset(kw.pop("preset"), **kw, steps=colour_steps, seed=wid)
@@ -174,10 +174,10 @@ def run(seq: str = "synth_row", windows_sel: list[int] | None = None, colour_ste
                 d = copy.copy(data)
                 d.poses_c2w = pose_matrix(cw[["tx", "ty", "tz", "qx", "qy", "qz", "qw"]].to_numpy(np.float64))
             if poses == DEPTH_SCALED:
-                if scale is None:
-                    scale = odometry_scale(data.depths, data.intrinsics, data.poses_c2w).scale
+                if icp_poses is None:  # the kept frames: every training frame, a few validation ones
+                    icp_poses = depth_initial_poses("icp", data.depths, data.intrinsics, data.poses_c2w)[0]
                 d = copy.copy(data)
-                d.poses_c2w = stretch(data.poses_c2w, scale)
+                d.poses_c2w = icp_poses
             r = fit_and_score(d, labels, gts, ncfg, replace(base_p, **pcfg_kw))
             rows.append({"method": name, "poses": poses, "status": "ok", "note": why if poses == "COLMAP" else "",
                          **r, **common})

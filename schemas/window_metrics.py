@@ -29,9 +29,12 @@ SCHEMA = table_schema(
         "window's training frames, so a short semantic-only phase ran and every instance id is 0)"),
     col("n_slots", pa.int32(), "instance slots of the window, slot 0 = stuff"),
     col("id_window_width", pa.int32(), "width of the repeated-ID rejection window in slots (0 = off)"),
-    col("odometry_scale", pa.float64(), "stretch applied to the window's initial pose positions, measured with "
-        "depth ICP (1 = none; nerf/depth_scale.py)"),
-    col("odometry_scale_pairs", pa.int32(), "frame pairs whose depth ICP voted for odometry_scale"),
-    col("odometry_scale_note", pa.string(), "why no stretch was applied ('' if it was; 'off' when disabled)"),
+    col("depth_poses", pa.string(), "how the initial poses were corrected with depth before the fit: 'icp' "
+        "(trajectory shape from ICP), 'scale' (odometry scale only) or 'off' (nerf/depth_poses.py)"),
+    col("odometry_scale", pa.float64(), "'scale' mode: stretch applied to the window's initial positions (1 = none); "
+        "null otherwise", nullable=True),
+    col("depth_pose_votes", pa.int32(), "'scale': frame pairs whose ICP voted; 'icp': consecutive-frame links taken "
+        "from ICP"),
+    col("depth_pose_note", pa.string(), "what was left to the odometry and why ('' if nothing)"),
     col("checkpoint_path", pa.string(), "model checkpoint (torch.save), relative to data/; '' if failed"),
 )

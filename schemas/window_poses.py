@@ -19,6 +19,6 @@ SCHEMA = table_schema(
     col("qy", pa.float64(), "camera-to-world rotation quaternion y"),
     col("qz", pa.float64(), "camera-to-world rotation quaternion z"),
     col("qw", pa.float64(), "camera-to-world rotation quaternion w"),
-    col("delta_t_m", pa.float64(), "distance between the input pose (odometry or COLMAP, before the depth-measured stretch) and the final camera position", "m"),
+    col("delta_t_m", pa.float64(), "distance between the input pose (odometry or COLMAP, before its correction with depth) and the final camera position", "m"),
     col("delta_rot_deg", pa.float64(), "rotation angle between the initial and the final orientation", "deg"),
 )

@@ -11,7 +11,7 @@ import numpy as np
 import pandas as pd
 
 from nerf.config import NerfConfig, preset
-from nerf.depth_scale import ScaleEstimate, odometry_scale, stretch
+from nerf.depth_poses import DepthPoses, depth_initial_poses
 from nerf.panoptic_fit import PanopticConfig
 from nerf.geometry import pose_matrix, pose_txyzq, rotation_angle_deg
 from pipeline import parallel
@@ -55,12 +55,13 @@ class Config:
     pose_source: Literal["odometry", "colmap"] = "odometry"
     """initial poses: 'odometry' (frames.parquet) or 'colmap' (colmap_poses.parquet, needs
     colmap_poses.enabled=true; frames COLMAP could not register keep their odometry pose)."""
-    depth_scale: bool = True
-    """stretch each window's initial poses by the odometry scale its depth frames measure (point-to-plane ICP
-    between frames a few apart, nerf/depth_scale.py, about 2 s per window; left at 1 with a note when ICP does not
-    lock on). Pose refinement from colour keeps whatever scale it starts from. Default row: the odometry is
-    2-4 % long (depth-measured scales 0.963 / 0.980 / 0.975 per window), and the refined poses' ATE (rigid)
-    falls from 5.1 to 2.0 mm with it, against 6.0 mm for the odometry."""
+    depth_poses: DepthPoses = "icp"
+    """correct each window's initial poses with its depth frames before the fit (nerf/depth_poses.py): 'icp'
+    = the shape of the trajectory from point-to-plane ICP between consecutive frames, placed onto the
+    odometry (about 3 s per window; a link ICP cannot lock keeps the odometry's); 'scale' = only the
+    odometry's scale along the window; 'off' = the odometry (or COLMAP) poses as they are. Pose refinement
+    from colour keeps the scale and drift it starts from. Default row, refined ATE (rigid): off 5.1 mm, scale
+    2.0 mm, against 6.0 mm for the odometry."""
     workers: int = 0
     """Dask workers for a local cluster (0 = one per core, at most one per window)."""
     threads_per_worker: int = 0
@@ -167,10 +168,7 @@ def fit_one(payload: dict) -> dict:
     data = load_window(frames, data_root)
     key = str(wid)
     odometry = data.poses_c2w
-    est = ScaleEstimate(1.0, 0, float("nan"), "off")
-    if payload["depth_scale"]:
-        est = odometry_scale(data.depths, data.intrinsics, odometry)
-        data.poses_c2w = stretch(odometry, est.scale)
+    data.poses_c2w, depth_info = depth_initial_poses(payload["depth_poses"], data.depths, data.intrinsics, odometry)
     try:
         res = fit_window(data, payload["cfg"], device=payload["device"], render_val=not payload["panoptic"].enabled,
                          progress=lambda s, n, info: parallel.report(key, s, n, **info))
@@ -226,7 +224,7 @@ def fit_one(payload: dict) -> dict:
                "panoptic_params": pan.params if pan else 0,
                "panoptic_instances": bool(pan is not None and pan.cfg.instances), "n_slots": pan.n_slots if pan else 0,
                "id_window_width": pan.slot_window.width if pan and pan.slot_window else 0,
-               "odometry_scale": est.scale, "odometry_scale_pairs": est.pairs, "odometry_scale_note": est.note,
+               **depth_info,
                "checkpoint": f"window_{wid:03d}/checkpoint.pt"}
     return {"poses": poses.to_dict("list"), "metrics": metrics}
 
@@ -252,7 +250,7 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
         payloads[str(wid)] = {"window_id": int(wid), "frames": w.to_dict("list"), "cfg": replace(mcfg, seed=cfg.seed + int(wid)),
                               "device": ctx.device, "out_dir": str(out_dir.resolve()),
                               "data_root": str(ctx.data_root.resolve()), "panoptic": cfg.panoptic,
-                              "depth_scale": cfg.depth_scale, "detections": _window_detections(dets, w)}
+                              "depth_poses": cfg.depth_poses, "detections": _window_detections(dets, w)}
     n_workers = cfg.workers or parallel.default_workers(len(payloads))
     threads = cfg.threads_per_worker or max(1, (os.cpu_count() or 1) // n_workers)
     outcomes = parallel.map_tasks(fit_one, payloads, n_workers=n_workers, threads_per_worker=threads,
@@ -274,8 +272,8 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
                                 "val_psnr": np.nan, "train_psnr": np.nan, "checkpoint_path": "",
                                 "panoptic_steps": 0, "panoptic_fit_s": 0.0, "panoptic_params": 0,
                                 "panoptic_instances": False, "n_slots": 0,
-                                "id_window_width": 0, "odometry_scale": np.nan, "odometry_scale_pairs": 0,
-                                "odometry_scale_note": ""})
+                                "id_window_width": 0, "depth_poses": cfg.depth_poses, "odometry_scale": np.nan,
+                                "depth_pose_votes": 0, "depth_pose_note": ""})
             continue
         m = dict(o.result["metrics"])
         m["checkpoint_path"] = ctx.relpath("nerf", m.pop("checkpoint"))

@@ -1,7 +1,7 @@
 import numpy as np
 import open3d as o3d
 
-from nerf.depth_scale import odometry_scale, stretch
+from nerf.depth_poses import depth_initial_poses, icp_trajectory, odometry_scale, stretch
 
 
 def _scene() -> o3d.t.geometry.RaycastingScene:
@@ -55,3 +55,35 @@ def test_odometry_scale_stays_at_one_with_a_note_when_depth_cannot_tell():
     assert est.scale == 1.0 and est.pairs == 0 and "registered" in est.note
     est = odometry_scale(_depths(xs, k), np.tile(k, (32, 1)), _poses(xs * 1.05), max_change=0.01)
     assert est.scale == 1.0 and "off by more than" in est.note
+
+
+def test_icp_trajectory_recovers_the_shape_of_a_drifting_odometry_in_its_frame():
+    xs = np.arange(32) * 0.012
+    k = np.array([60.0, 60.0, 40.0, 30.0])
+    depths, intr = _depths(xs, k), np.tile(k, (32, 1))
+    odo = _poses(xs * 1.05)
+    odo[:, 1, 3] += 0.002 * np.arange(32) ** 1.5 / 32 ** 0.5         # a lateral drift that grows
+    poses, links, note = icp_trajectory(depths, intr, odo)
+    assert links == 31 and note == ""
+    steps = np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1)
+    np.testing.assert_allclose(steps, 0.012, atol=3e-4)               # the true spacing, not the odometry's
+    assert abs(poses[:, :3, 3].mean(0) - odo[:, :3, 3].mean(0)).max() < 1e-6   # placed onto the odometry
+    np.testing.assert_allclose(poses[:, :3, :3], odo[:, :3, :3], atol=3e-3)  # no roll about the straight track
+    blind, links, note = icp_trajectory(np.zeros_like(depths), intr, odo)
+    np.testing.assert_allclose(blind, odo, atol=1e-9)                 # nothing to lock on: the odometry
+    assert links == 0 and "31 of 31" in note
+
+
+def test_depth_initial_poses_modes():
+    xs = np.arange(32) * 0.012
+    k = np.array([60.0, 60.0, 40.0, 30.0])
+    depths, intr, odo = _depths(xs, k), np.tile(k, (32, 1)), _poses(xs * 1.05)
+    same, info = depth_initial_poses("off", depths, intr, odo)
+    assert same is odo and info["depth_poses"] == "off"
+    scaled, info = depth_initial_poses("scale", depths, intr, odo)
+    assert abs(info["odometry_scale"] - 1 / 1.05) < 0.005 and info["depth_pose_votes"] >= 5
+    chained, info = depth_initial_poses("icp", depths, intr, odo)
+    assert info["depth_pose_votes"] == 31
+    import pytest
+    with pytest.raises(ValueError, match="modes"):
+        depth_initial_poses("lidar", depths, intr, odo)
