@@ -51,7 +51,8 @@ def run(seq: str = "synth_row", steps: int = 100, workers: int = 2, split: int =
             # the colour phase only (the panoptic phase scales the same way and would double the cost)
             payloads[str(wid)] = {"window_id": int(wid), "frames": w.to_dict("list"), "cfg": replace(cfg, seed=int(wid)),
                                   "device": "cpu", "out_dir": tmp, "data_root": str(data_root.resolve()),
-                                  "panoptic": replace(PanopticConfig(), enabled=False), "detections": None}
+                                  "panoptic": replace(PanopticConfig(), enabled=False), "detections": None,
+                                  "depth_poses": Config().depth_poses}
         for n in (1, workers):
             t0 = time.perf_counter()
             out = parallel.map_tasks(fit_one, payloads, n_workers=n, threads_per_worker=1, show_progress=False)
