@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import argparse
 import time
-from dataclasses import replace
 from pathlib import Path
 import tempfile
 
@@ -21,7 +20,7 @@ from bench._common import bar_plot, write_parquet
 from pipeline import parallel
 from pipeline.io import read_table
 from nerf.panoptic_fit import PanopticConfig
-from stages.nerf_fit import Config, ModelOverrides, fit_one, initial_poses, model_config
+from stages.nerf_fit import Config, ModelOverrides, fit_one, initial_poses, model_config, window_payload
 
 
 def split_windows(windows: pd.DataFrame, parts: int) -> pd.DataFrame:
@@ -41,18 +40,16 @@ def run(seq: str = "synth_row", steps: int = 100, workers: int = 2, split: int =
         out_dir: Path = Path("data/bench")) -> pd.DataFrame:
     frames = read_table(data_root / "interim" / seq / "frames.parquet", "frames")
     windows = split_windows(read_table(data_root / "interim" / seq / "windows.parquet", "windows"), max(1, split))
-    cfg = model_config(Config(model=ModelOverrides(steps=steps)))
+    # the colour phase only (the panoptic phase scales the same way and would double the cost)
+    cfg = Config(model=ModelOverrides(steps=steps), panoptic=PanopticConfig(enabled=False))
+    mcfg = model_config(cfg)
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         payloads = {}
         for wid in sorted(windows.window_id.unique())[: tasks or None]:
             w = windows[windows.window_id == wid].merge(frames, on="frame_id")
             w = initial_poses(w, int(wid), None, "odometry")
-            # the colour phase only (the panoptic phase scales the same way and would double the cost)
-            payloads[str(wid)] = {"window_id": int(wid), "frames": w.to_dict("list"), "cfg": replace(cfg, seed=int(wid)),
-                                  "device": "cpu", "out_dir": tmp, "data_root": str(data_root.resolve()),
-                                  "panoptic": replace(PanopticConfig(), enabled=False), "detections": None,
-                                  "depth_poses": Config().depth_poses}
+            payloads[str(wid)] = window_payload(int(wid), w, cfg, mcfg, "cpu", Path(tmp), data_root, None)
         for n in (1, workers):
             t0 = time.perf_counter()
             out = parallel.map_tasks(fit_one, payloads, n_workers=n, threads_per_worker=1, show_progress=False)

@@ -157,6 +157,14 @@ def _window_detections(dets: pd.DataFrame | None, w: pd.DataFrame) -> dict | Non
     return dets[dets.frame_id.isin(w.frame_id)][["frame_id", "segment_id", "score", "kept"]].to_dict("list")
 
 
+def window_payload(wid: int, w: pd.DataFrame, cfg: Config, mcfg: NerfConfig, device: str, out_dir: Path,
+                   data_root: Path, detections: dict | None) -> dict:
+    """The task fit_one runs for window `wid` (its frame rows `w` with their initial poses)."""
+    return {"window_id": wid, "frames": w.to_dict("list"), "cfg": replace(mcfg, seed=cfg.seed + wid), "device": device,
+            "out_dir": str(Path(out_dir).resolve()), "data_root": str(Path(data_root).resolve()),
+            "panoptic": cfg.panoptic, "depth_poses": cfg.depth_poses, "detections": detections}
+
+
 def fit_one(payload: dict) -> dict:
     """Runs in a Dask worker: fit, save checkpoint and renders, return table rows."""
     import torch
@@ -247,10 +255,8 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
         if w["rgb_path"].isna().any():
             raise ValueError(f"window {wid}: frames {w.loc[w.rgb_path.isna(), 'frame_id'].tolist()} not in frames.parquet")
         w = initial_poses(w, int(wid), colmap, cfg.pose_source)
-        payloads[str(wid)] = {"window_id": int(wid), "frames": w.to_dict("list"), "cfg": replace(mcfg, seed=cfg.seed + int(wid)),
-                              "device": ctx.device, "out_dir": str(out_dir.resolve()),
-                              "data_root": str(ctx.data_root.resolve()), "panoptic": cfg.panoptic,
-                              "depth_poses": cfg.depth_poses, "detections": _window_detections(dets, w)}
+        payloads[str(wid)] = window_payload(int(wid), w, cfg, mcfg, ctx.device, out_dir, ctx.data_root,
+                                            _window_detections(dets, w))
     n_workers = cfg.workers or parallel.default_workers(len(payloads))
     threads = cfg.threads_per_worker or max(1, (os.cpu_count() or 1) // n_workers)
     outcomes = parallel.map_tasks(fit_one, payloads, n_workers=n_workers, threads_per_worker=threads,
