@@ -117,8 +117,7 @@ def run(seq: str = "synth_row", window: int = 1, colour_steps: int = 0, panoptic
             renders.append(render_panoptic(model, pres, int(i)))
             render_s.append(time.perf_counter() - t1)
             psnrs.append(psnr(renders[-1]["rgb"], torch.from_numpy(data.images[i]).float() / 255.0))
-        if pres.cfg.complete_3d:  # as nerf_fit does with the renders it writes
-            complete_instances(renders, data.intrinsics[val], colour.poses_c2w[val], pres.cfg)
+        complete_instances(renders, data.intrinsics[val], colour.poses_c2w[val], pres.cfg)  # as nerf_fit does
         preds = [(r["semantic"], r["instance"]) for r in renders]
         rows.append({"variant": name, "memory_prior": base.memory_prior, **change, "val_psnr": float(np.mean(psnrs)), **score(preds, gts),
                      "pq_detector": det["pq"], "miou_detector": det["miou"],

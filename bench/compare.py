@@ -56,7 +56,7 @@ from stages.colmap_poses import Config as ColmapConfig
 from stages.colmap_poses import window_colmap
 from stages.nerf_fit import initial_poses, load_labels, load_window
 
-DEPTH_SCALED = "depth ICP + online refinement"
+DEPTH_ICP = "depth ICP + online refinement"
 """the pipeline's default pose source: the odometry corrected with depth ICP (nerf/depth_poses.py, 'icp'),
 then refined online."""
 DEFAULT = dict(colour_steps=300, panoptic_steps=200, val_frames=5)
@@ -85,8 +85,7 @@ def fit_and_score(data: WindowData, labels: WindowLabels, gts: list, ncfg: NerfC
         renders.append(render_panoptic(res.model, pres, int(i)))
         secs.append(time.perf_counter() - t0)
         psnrs.append(psnr(renders[-1]["rgb"], torch.from_numpy(data.images[i]).float() / 255.0))
-    if pcfg.complete_3d:  # as nerf_fit does with the renders it writes
-        complete_instances(renders, data.intrinsics[val], res.poses_c2w[val], pres.cfg)
+    complete_instances(renders, data.intrinsics[val], res.poses_c2w[val], pres.cfg)  # as nerf_fit does
     preds = [(r["semantic"], r["instance"]) for r in renders]
     return {"psnr": float(np.mean(psnrs)), **score(preds, gts), "fit_min_per_window": (res.fit_s + pres.fit_s) / 60,
             "render_s_per_image": float(np.median(secs)), "params": param_count(res.model.field) + pres.params,
@@ -100,15 +99,15 @@ def methods(colour_steps: int, with_l: bool) -> list[tuple[str, str, dict, dict]
         ("Semantic-NeRF-like", "odometry fixed", dict(preset="cpu", field_kind="mlp_pe", refine_poses=False),
          SEMANTIC_ONLY),
         ("Panoptic-Lifting-like", "odometry fixed", dict(preset="cpu", refine_poses=False), PANOPTIC_LIFTING_LIKE),
-        ("ours S", DEPTH_SCALED, dict(preset="S"), {}),
+        ("ours S", DEPTH_ICP, dict(preset="S"), {}),
     ]
     if with_l:
-        out.append(("ours L", DEPTH_SCALED, dict(preset="L"), {}))
+        out.append(("ours L", DEPTH_ICP, dict(preset="L"), {}))
     out += [
         ("ours cpu", "odometry fixed", dict(preset="cpu", refine_poses=False), {}),
         ("ours cpu", "COLMAP", dict(preset="cpu", refine_poses=False), {}),
         ("ours cpu", "online refinement", dict(preset="cpu"), {}),
-        ("ours cpu", DEPTH_SCALED, dict(preset="cpu"), {}),
+        ("ours cpu", DEPTH_ICP, dict(preset="cpu"), {}),
     ]
     return out
 
@@ -173,7 +172,7 @@ def run(seq: str = "synth_row", windows_sel: list[int] | None = None, colour_ste
                     continue
                 d = copy.copy(data)
                 d.poses_c2w = pose_matrix(cw[["tx", "ty", "tz", "qx", "qy", "qz", "qw"]].to_numpy(np.float64))
-            if poses == DEPTH_SCALED:
+            if poses == DEPTH_ICP:
                 if icp_poses is None:  # the kept frames: every training frame, a few validation ones
                     icp_poses = depth_initial_poses("icp", data.depths, data.intrinsics, data.poses_c2w)[0]
                 d = copy.copy(data)

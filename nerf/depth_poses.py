@@ -24,6 +24,9 @@ from typing import Literal
 
 import numpy as np
 
+from nerf.geometry import rotation_angle_deg
+from nerf.surfaces import unproject
+
 
 @dataclass(frozen=True)
 class ScaleEstimate:
@@ -42,13 +45,24 @@ def depth_cloud(depth_m: np.ndarray, k: np.ndarray, max_depth_m: float, voxel_m:
     import open3d as o3d
 
     v, u = np.nonzero((depth_m > 0) & (depth_m <= max_depth_m) & np.isfinite(depth_m))
-    z = depth_m[v, u].astype(np.float64)
-    pts = np.stack([(u + 0.5 - k[2]) / k[0] * z, (v + 0.5 - k[3]) / k[1] * z, z], 1)
+    pts = unproject(depth_m, k, np.eye(4), v, u)
     pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts)).voxel_down_sample(voxel_m)
     if len(pc.points) < 3:
         return pc
     pc.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=5 * voxel_m, max_nn=30))
     return pc
+
+
+def register(src, dst, init: np.ndarray, max_dist_m: float, min_points: int = 100) -> tuple[np.ndarray, float] | None:
+    """Point-to-plane ICP of cloud `src` onto `dst` (depth_cloud) from `init` [4, 4]: (transform, fitness),
+    or None when either cloud has fewer than `min_points` points."""
+    import open3d as o3d
+
+    if len(src.points) < min_points or len(dst.points) < min_points:
+        return None
+    reg = o3d.pipelines.registration.registration_icp(
+        src, dst, max_dist_m, init, o3d.pipelines.registration.TransformationEstimationPointToPlane())
+    return np.asarray(reg.transformation), float(reg.fitness)
 
 
 def odometry_scale(depths: np.ndarray, intrinsics: np.ndarray, c2w: np.ndarray, gap: int = 8, stride: int = 4,
@@ -61,8 +75,6 @@ def odometry_scale(depths: np.ndarray, intrinsics: np.ndarray, c2w: np.ndarray, 
     and the odometry moved >= min_baseline_m between them. Returns scale 1 with a note when fewer than
     min_pairs vote, when their ratios disagree (MAD > max_spread) or when the scale is off by more than
     max_change: a scene ICP cannot lock on (moving leaves, no depth) must not stretch the trajectory."""
-    import open3d as o3d
-
     n = len(depths)
     ratios, clouds = [], {}
     for i in range(0, max(n - gap, 0), stride):
@@ -74,12 +86,11 @@ def odometry_scale(depths: np.ndarray, intrinsics: np.ndarray, c2w: np.ndarray, 
         for f in (i, j):
             if f not in clouds:
                 clouds[f] = depth_cloud(depths[f], intrinsics[f], max_depth_m, voxel_m)
-        if len(clouds[i].points) < 100 or len(clouds[j].points) < 100:
+        reg = register(clouds[i], clouds[j], init, max_dist_m)
+        if reg is None:
             continue
-        reg = o3d.pipelines.registration.registration_icp(
-            clouds[i], clouds[j], max_dist_m, init, o3d.pipelines.registration.TransformationEstimationPointToPlane())
-        t = np.asarray(reg.transformation)[:3, 3]
-        if reg.fitness >= min_fitness and np.all(np.isfinite(t)):
+        t = reg[0][:3, 3]
+        if reg[1] >= min_fitness and np.all(np.isfinite(t)):
             ratios.append(float(np.linalg.norm(t)) / base)
     if len(ratios) < min_pairs:
         return ScaleEstimate(1.0, len(ratios), float("nan"), f"{len(ratios)} of the needed {min_pairs} frame pairs "
@@ -118,12 +129,10 @@ def icp_trajectory(depths: np.ndarray, intrinsics: np.ndarray, c2w: np.ndarray, 
                    max_link_change_m: float = 0.01, max_link_change_deg: float = 1.0) -> tuple[np.ndarray, int, str]:
     """A window's camera poses [N, 4, 4] from its depth frames: each consecutive pair's relative pose by
     point-to-plane ICP started from the odometry's, chained from the first frame, then placed onto the
-    odometry by the rigid transform that best maps the chained positions onto the odometry's (the window
-    stays in the odometry's frame; only its shape comes from depth). A link keeps the odometry's relative pose
+    odometry by one rigid transform (place_onto: mean orientation and mean position; the window stays in the
+    odometry's frame, only its shape comes from depth). A link keeps the odometry's relative pose
     when ICP does not converge (fitness < min_fitness) or moves it by more than max_link_change_m /
     max_link_change_deg (a wrong lock). Returns (poses, links from ICP, note)."""
-    import open3d as o3d
-
     n = len(depths)
     clouds = [depth_cloud(d, k, max_depth_m, voxel_m) for d, k in zip(depths, intrinsics)]
     out = [c2w[0].copy()]
@@ -131,15 +140,12 @@ def icp_trajectory(depths: np.ndarray, intrinsics: np.ndarray, c2w: np.ndarray, 
     for i in range(n - 1):
         init = np.linalg.inv(c2w[i + 1]) @ c2w[i]               # camera i -> camera i + 1, from the odometry
         rel = init
-        if len(clouds[i].points) >= 100 and len(clouds[i + 1].points) >= 100:
-            reg = o3d.pipelines.registration.registration_icp(
-                clouds[i], clouds[i + 1], max_dist_m, init,
-                o3d.pipelines.registration.TransformationEstimationPointToPlane())
-            t = np.asarray(reg.transformation)
+        reg = register(clouds[i], clouds[i + 1], init, max_dist_m)
+        if reg is not None and reg[1] >= min_fitness and np.all(np.isfinite(reg[0])):
+            t = reg[0]
             change = np.linalg.inv(init) @ t
-            angle = np.degrees(np.arccos(np.clip((np.trace(change[:3, :3]) - 1) / 2, -1, 1)))
-            if (reg.fitness >= min_fitness and np.all(np.isfinite(t))
-                    and np.linalg.norm(change[:3, 3]) <= max_link_change_m and angle <= max_link_change_deg):
+            if (np.linalg.norm(change[:3, 3]) <= max_link_change_m
+                    and rotation_angle_deg(init[:3, :3], t[:3, :3]) <= max_link_change_deg):
                 rel, good = t, good + 1
         out.append(out[-1] @ np.linalg.inv(rel))
     poses = np.stack(out)

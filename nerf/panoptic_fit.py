@@ -557,8 +557,9 @@ def complete_instances(frames: list[dict], intrinsics: np.ndarray, c2w: np.ndarr
     [H, W] int32, 'depth' [H, W] metres, numpy or torch; changed in place): every stuff pixel whose
     un-projected point lies inside an instance's sphere (instance_spheres, radius + cfg.complete_margin_m)
     joins that instance with its majority class; a pixel inside two spheres goes to the one it lies deeper
-    in (smaller distance / radius). Pixels of other instances are never taken. Returns the pixels added."""
-    if not cfg.instances or not frames:
+    in (smaller distance / radius). Pixels of other instances are never taken. Returns the pixels added
+    (0 with cfg.complete_3d off)."""
+    if not (cfg.complete_3d and cfg.instances and frames):
         return 0
     as_np = lambda a: a.detach().cpu().numpy() if isinstance(a, Tensor) else np.asarray(a)  # noqa: E731
     depths = [as_np(f["depth"]).astype(np.float64) for f in frames]

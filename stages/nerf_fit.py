@@ -198,9 +198,8 @@ def fit_one(payload: dict) -> dict:
             raise RuntimeError(f"window {wid} (panoptic phase): {err}") from err
         state["panoptic"] = pan.state()
         validate(res, data, lambda i: render_panoptic(res.model, pan, i))
-        if pcfg.complete_3d:
-            val = [int(i) for i in np.flatnonzero(~data.is_train)]
-            complete_instances([res.renders[i] for i in val], data.intrinsics[val], res.poses_c2w[val], pan.cfg)
+        val = [int(i) for i in np.flatnonzero(~data.is_train)]
+        complete_instances([res.renders[i] for i in val], data.intrinsics[val], res.poses_c2w[val], pan.cfg)
     torch.save(state, wdir / "checkpoint.pt")
     for i in np.flatnonzero(~data.is_train):
         out = res.renders[int(i)]
