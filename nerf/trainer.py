@@ -16,6 +16,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from nerf._ext import load_permuto_ext
 from nerf.config import NerfConfig
 from nerf.field import RadianceField, build_field, param_count
 from nerf.occupancy import OccupancyGrid
@@ -284,6 +285,8 @@ def fit_window(data: WindowData, cfg: NerfConfig, device: str = "cpu",
     occ_fn = model.occupied_fn()
     step_m = float(cfg.step_scale / k[:, 0].mean() * 0.5)
     history: list[dict] = []
+    if cfg.field_kind == "permuto":  # build or load the fused kernel before the clock starts: a first build on
+        load_permuto_ext(dev.type)   # a fresh machine takes over a minute of compiling, not of fitting
     t0 = time.perf_counter()
     n_samples_total = 0
     for step in range(cfg.steps):

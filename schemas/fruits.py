@@ -36,7 +36,13 @@ SCHEMA = table_schema(
     col("median_depth_m", pa.float64(), "median camera depth of the fruit's pixels over its frames", "m"),
     col("near_row", pa.bool_(), "median_depth_m <= fruit_count.max_depth_m; false = far row (not counted)"),
     col("counted", pa.bool_(), "in counts.parquet: near_row, seen in >= fruit_count.min_count_frames fused frames "
-        "and with >= fruit_count.min_count_points points (false = far row or a fragment)"),
+        "and with >= fruit_count.min_count_points points, and not unconfirmed by the detector (detector_p) "
+        "(false = far row, a fragment or unconfirmed)"),
+    col("n_confirmed_frames", pa.int32(), "fused frames in which the detector's segments cover >= "
+        "fruit_count.detector_cover of the fruit's pixels (null without detector images)", "frames", nullable=True),
+    col("detector_p", pa.float64(), "chance that a real fruit is confirmed in as few of its fused frames, at the "
+        "row's confirmation rate (binomial); below fruit_count.detector_alpha, with under half that rate, it is "
+        "not counted (null without detector images)", "fraction", nullable=True),
     col("n_points", pa.int32(), "3D points kept after outlier rejection", "points"),
     col("n_outliers", pa.int32(), "3D points rejected by the MAD test", "points"),
     col("n_frames", pa.int32(), "fused frames the fruit appears in", "frames"),

@@ -270,6 +270,16 @@ def row_scores(inputs: dict, gt: GroundTruth, gt_fruits: pd.DataFrame | None, gt
                     out[f"{name}_bias_m"] = float(err.mean())
                     if name == "diameter":
                         out["diameter_median_abs_err_m"] = float(np.median(np.abs(err)))
+            # other definitions of the truth, where the ground truth carries them (synthetic rows: the widest
+            # caliper reading and the pepper's shape parameter)
+            for ref in ("diameter_max_m", "diameter_nominal_m"):
+                if ref in g.columns:
+                    err = pred["diameter_m"].to_numpy(np.float64)[pi] - g[ref].to_numpy(np.float64)[gi]
+                    err = err[np.isfinite(err)]
+                    if len(err):
+                        name = ref.removesuffix("_m")
+                        out[f"diameter_vs_{name}_median_abs_err_m"] = float(np.median(np.abs(err)))
+                        out[f"diameter_vs_{name}_bias_m"] = float(err.mean())
             out["class_accuracy"] = float(np.mean(pred.class_id.to_numpy()[pi] == g.class_id.to_numpy()[gi]))
     return [("row", k, v) for k, v in out.items()]
 

@@ -48,6 +48,16 @@ class Config:
     in fruits.parquet with counted = false, not counted."""
     min_count_points: int = 100
     """a fruit with fewer 3D points over the row is a fragment too (counted = false)."""
+    detector_cover: float = 0.3
+    """a fused frame confirms a fruit when the detector's thing segments of that frame cover at least this share
+    of the fruit's pixels there (the detector is not the NeRF's input on validation frames, so it is an
+    independent witness)."""
+    detector_alpha: float = 0.01
+    """a fruit is unconfirmed (counted = false) when it is confirmed in under half the share of frames the row's
+    fruits are confirmed in on average (the detector's recall r) AND, were it real, so few confirmations out of
+    its n frames would have a chance under this (binomial: P(X <= k | n, r)). That is what the NeRF renders from
+    a detector false positive in a few training frames, which the validation frames' detections never repeat.
+    Default row: the one such fruit (0 of 4 frames) has 1e-4, the real fruits >= 0.09. 0 = off."""
     max_fit_extent_ratio: float = 2.0
     """a surface fit whose diameter (or length) exceeds this multiple of the largest extent of the points is
     rejected too: it extrapolates a whole fruit from a small cap (a fruit seen only as a sliver over or past
@@ -66,6 +76,8 @@ class Config:
                              "max_points_per_view >= 1")
         if not self.max_radius_m > 0:
             raise ValueError(f"fruit_count.max_radius_m must be > 0, got {self.max_radius_m}")
+        if not 0 < self.detector_cover <= 1 or not 0 <= self.detector_alpha < 1:
+            raise ValueError("fruit_count.detector_cover must be in (0, 1] and detector_alpha in [0, 1)")
         if not self.max_fit_extent_ratio >= 1:
             raise ValueError(f"fruit_count.max_fit_extent_ratio must be >= 1, got {self.max_fit_extent_ratio}")
 
@@ -134,6 +146,27 @@ def measure(points: np.ndarray, cfg: Config) -> dict:
     return out
 
 
+def detector_support(checked: dict[int, int], confirmed: dict[int, int], alpha: float
+                     ) -> dict[int, tuple[float, bool]]:
+    """Per fruit with n = checked[f] > 0 frames of which k = confirmed[f] confirm it: (p, unconfirmed), with
+    r = the pooled confirmation rate over all fruits, p = P(X <= k) for X ~ Binomial(n, r) (the chance a real
+    fruit is confirmed this rarely) and unconfirmed = p < alpha and k / n < r / 2. The second test keeps a
+    well-confirmed fruit under a detector that confirms nearly everything (the pooled rate makes the binomial
+    overconfident: occluded fruits are missed more often than the average)."""
+    from scipy.stats import binom
+
+    n_all = sum(checked.values())
+    if not n_all:
+        return {}
+    rate = min(sum(confirmed.get(f, 0) for f in checked) / n_all, 1.0)
+    out = {}
+    for f, n in checked.items():
+        k = confirmed.get(f, 0)
+        p = float(binom.cdf(k, n, rate))
+        out[f] = (p, bool(alpha > 0 and p < alpha and k / n < rate / 2))
+    return out
+
+
 def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]:
     import open3d as o3d
 
@@ -144,6 +177,8 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
     votes: dict[int, list[int]] = defaultdict(list)
     depths: dict[int, list[np.ndarray]] = defaultdict(list)
     seen: dict[int, list[int]] = defaultdict(list)
+    checked: dict[int, int] = defaultdict(int)      # fused frames with a detector image, per fruit
+    confirmed: dict[int, int] = defaultdict(int)    # ... of them where the detector's segments cover the fruit
     for r in ctx.progress(pf.itertuples(index=False), "unproject fruits", total=len(pf)):
         fid = int(r.frame_id)
         if fid not in frames.index:
@@ -155,6 +190,12 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
         if not inst.shape == sem.shape == depth.shape:
             raise ImageError(f"frame {fid}: fused PNGs {r.instance_path} {inst.shape}, {r.semantic_path} {sem.shape} "
                              f"and depth render {r.depth_path} {depth.shape} differ in size")
+        det = None
+        if "det_instance_path" in fr.index and isinstance(fr.det_instance_path, str) and fr.det_instance_path:
+            det = read_label(ctx.abspath(fr.det_instance_path), "detector instance")
+            if det.shape != inst.shape:
+                raise ImageError(f"frame {fid}: detector instance PNG {fr.det_instance_path} {det.shape} and fused "
+                                 f"PNG {r.instance_path} {inst.shape} differ in size")
         c2w = pose_matrix(np.array([r.tx, r.ty, r.tz, r.qx, r.qy, r.qz, r.qw], np.float64))  # row frame
         k = np.array([fr.fx, fr.fy, fr.cx, fr.cy], np.float64)
         v, u = np.nonzero(inst > 0)
@@ -168,12 +209,16 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
             d = depth[vv, uu]
             good = d > 0
             seen[fruit].append(fid)
+            if det is not None:
+                checked[fruit] += 1
+                confirmed[fruit] += int(np.mean(det[vv, uu] > 0) >= cfg.detector_cover)
             votes[fruit].append(int(np.bincount(sem[vv, uu]).argmax()))
             if good.any():
                 depths[fruit].append(d[good])
                 pick = subsample(int(good.sum()), cfg.max_points_per_view)
                 points[fruit].append(unproject(depth, k, c2w, vv[good][pick], uu[good][pick]))
     n_windows = slots[slots.fruit_id > 0].groupby("fruit_id").window_id.nunique()
+    support = detector_support(checked, confirmed, cfg.detector_alpha)
     rows, cloud_pts, cloud_ids = [], [], []
     for fruit in ctx.progress(sorted(seen), "measure fruits", total=len(seen)):
         if fruit not in points:
@@ -187,11 +232,14 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
         cls = int(np.bincount(things).argmax()) if len(things) else int(np.bincount(v).argmax())
         med_depth = float(np.median(np.concatenate(depths[fruit])))
         near_row, n_frames = med_depth <= cfg.max_depth_m, len(set(seen[fruit]))
+        p_real, unconfirmed = support.get(fruit, (None, False))
         rows.append({"fruit_id": fruit, "class_id": cls, "class_name": class_name(cls),
                      "class_confidence": float(np.mean(v == cls)), **m, "median_depth_m": med_depth,
                      "near_row": near_row, "n_frames": n_frames,
                      "counted": bool(near_row and n_frames >= cfg.min_count_frames
-                                     and m["n_points"] >= cfg.min_count_points),
+                                     and m["n_points"] >= cfg.min_count_points and not unconfirmed),
+                     "n_confirmed_frames": confirmed.get(fruit, 0) if fruit in checked else None,
+                     "detector_p": p_real,
                      "n_windows": int(n_windows.get(fruit, 1)), "first_frame_id": min(seen[fruit]),
                      "last_frame_id": max(seen[fruit])})
         cloud_pts.append(pts)
@@ -218,9 +266,13 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
         ctx.note(f"{n_far} fruits beyond {cfg.max_depth_m:g} m (far row) are in fruits.parquet with near_row = "
                  f"false and not counted")
     n_frag = int((fruits.near_row.astype(bool) & ~fruits.counted.astype(bool)).sum())
+    unconf = [f for f, (_, u) in support.items() if u]
+    if unconf:
+        ctx.note(f"fruits {unconf}: the detector confirms them in too few of their frames (detector_p < "
+                 f"{cfg.detector_alpha:g}): in fruits.parquet with counted = false")
     if n_frag:
-        ctx.note(f"{n_frag} near-row fruits seen in under {cfg.min_count_frames} fused frames or with under "
-                 f"{cfg.min_count_points} points are fragments: in fruits.parquet with counted = false")
-    ctx.summary.update(fruits=len(fruits), counted=len(near), far_row=n_far, fragments=n_frag,
+        ctx.note(f"{n_frag} near-row fruits not counted: fragments (under {cfg.min_count_frames} fused frames or "
+                 f"under {cfg.min_count_points} points) or unconfirmed by the detector; counted = false")
+    ctx.summary.update(fruits=len(fruits), counted=len(near), far_row=n_far, fragments=n_frag, unconfirmed=len(unconf),
                        **{f"count_{c}": int(n) for c, n in zip(counts.class_name, counts["count"])})
     return {"fruits": fruits, "counts": counts}

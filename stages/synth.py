@@ -221,6 +221,8 @@ def fruit_table(fruits: list[scene.Fruit], n_frames_visible: np.ndarray) -> pd.D
         "class_id": np.array([f.class_id for f in fruits], np.int32),
         "x_m": centres[:, 0], "y_m": centres[:, 1], "z_m": centres[:, 2],
         "diameter_m": np.array([f.diameter_m for f in fruits], np.float64),
+        "diameter_max_m": np.array([f.diameter_max_m for f in fruits], np.float64),
+        "diameter_nominal_m": np.array([f.diameter_nominal_m for f in fruits], np.float64),
         "length_m": np.array([f.length_m for f in fruits], np.float64),
         "near_row": np.array([f.near_row for f in fruits], bool),
         "n_frames_visible": np.asarray(n_frames_visible, np.int32),
@@ -246,7 +248,7 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
     sc = scene.build_scene(layout, cfg.seed)
     fruits = sc.fruits
     n_ids = len(fruits) + 1
-    sizes = detector.FruitSizes(np.array([0.0] + [f.diameter_m for f in fruits]),
+    sizes = detector.FruitSizes(np.array([0.0] + [f.diameter_nominal_m for f in fruits]),
                                 np.array([0.0] + [f.length_m for f in fruits]),
                                 np.array([False] + [f.near_row for f in fruits]), float(k[0, 0]), float(k[1, 1]))
     noise = detector.DetectorNoise(cfg.det_miss_rate, cfg.det_false_pos_rate, cfg.det_boundary_px,

@@ -55,8 +55,13 @@ class Fruit:
     class_id: int
     centre: tuple[float, float, float]
     diameter_m: float
+    """mean caliper width across the fruit's axis, measured on its mesh (meshes.calipers)."""
     length_m: float
     near_row: bool
+    diameter_max_m: float = float("nan")
+    """widest caliper reading across the axis (meshes.calipers)."""
+    diameter_nominal_m: float = float("nan")
+    """the shape parameter the mesh was built from (meshes.pepper's diameter_m)."""
 
 
 @dataclass
@@ -243,12 +248,14 @@ def build_scene(layout: RowLayout, seed: int) -> Scene:
     fruits = []
     for fid, p in enumerate(plans, start=1):
         stalk_klass = PLANT if p.near else BACKGROUND
-        b.add(meshes.pepper(p.diameter_m, p.length_m, p.n_lobes, p.phase), p.rot, p.centre, FRUIT, p.class_id, fid,
+        mesh = meshes.pepper(p.diameter_m, p.length_m, p.n_lobes, p.phase)
+        width_mean, width_max = meshes.calipers(mesh.vertices)
+        b.add(mesh, p.rot, p.centre, FRUIT, p.class_id, fid,
               param=(p.hue, p.length_m, p.diameter_m, p.n_lobes + p.phase / (2 * np.pi)))
         top = p.centre + p.rot[:, 2] * 0.4 * p.length_m
         mid = (top + p.stalk_to) / 2 + np.array([0.0, 0.0, 0.01])
         b.add(meshes.tube(np.stack([top, mid, p.stalk_to]), 0.0045, res=6), np.eye(3), np.zeros(3), STEM,
               stalk_klass, param=(0.5, 0, 0, layout.near_row_y_m if p.near else far_y))
-        fruits.append(Fruit(fid, p.class_id, tuple(float(v) for v in p.centre), float(p.diameter_m),
-                            float(p.length_m), p.near))
+        fruits.append(Fruit(fid, p.class_id, tuple(float(v) for v in p.centre), width_mean, float(p.length_m),
+                            p.near, width_max, float(p.diameter_m)))
     return b.build(fruits, seed)

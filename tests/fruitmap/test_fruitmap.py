@@ -249,6 +249,28 @@ def test_counts_equal_the_ground_truth_near_row_fruits_seen(perfect_row):
         assert counts.loc[c, "count"] == int((gt.loc[seen, "class_id"] == c).sum())
 
 
+def test_fruits_the_detector_never_confirms_are_not_counted():
+    # ten fruits confirmed in about 90 % of their frames, one in none of its 5, one in 1 of 12
+    checked = {f: 10 for f in range(1, 11)} | {11: 5, 12: 12}
+    confirmed = {f: 9 for f in range(1, 11)} | {11: 0, 12: 1}
+    out = fruit_count.detector_support(checked, confirmed, alpha=0.01)
+    assert [f for f, (_, u) in out.items() if u] == [11, 12]
+    assert all(0 <= p <= 1 for p, _ in out.values()) and out[11][0] < 1e-3 < out[1][0]
+    assert not any(u for _, u in fruit_count.detector_support(checked, confirmed, alpha=0.0).values())
+    # a detector that confirms nearly everything: a fruit confirmed in 27 of 30 frames is still real
+    checked = {f: 30 for f in range(1, 21)}
+    confirmed = {f: 30 for f in range(1, 20)} | {20: 27}
+    assert not any(u for _, u in fruit_count.detector_support(checked, confirmed, alpha=0.01).values())
+    assert fruit_count.detector_support({}, {}, alpha=0.01) == {}
+
+
+def test_counted_fruits_are_confirmed_by_the_detector(perfect_row):
+    fruits = pd.read_parquet(perfect_row.processed / "fruits.parquet")
+    counted = fruits[fruits.counted]
+    assert len(counted) and (counted.n_confirmed_frames > 0).all()
+    assert counted.detector_p.between(0, 1).all() and (counted.n_confirmed_frames <= counted.n_frames).all()
+
+
 def test_surface_fits_recover_known_shapes():
     rng = np.random.default_rng(0)
     th, ph = rng.uniform(0.2, np.pi - 0.2, 800), rng.uniform(-np.pi / 2, np.pi / 2, 800)   # front half only

@@ -65,7 +65,11 @@ def test_layout_matches_data_readme(row):
     fruits = pd.read_parquet(root / "gt" / "fruits.parquet")
     assert {"fruit_id", "class_id", "x_m", "y_m", "z_m", "diameter_m", "length_m", "near_row"} <= set(fruits.columns)
     assert fruits["fruit_id"].tolist() == list(range(1, len(fruits) + 1)) and fruits["class_id"].isin([2, 3, 4]).all()
-    assert fruits["diameter_m"].between(0.06, 0.09).all() and fruits["length_m"].between(0.07, 0.11).all()
+    assert fruits["diameter_nominal_m"].between(0.06, 0.09).all() and fruits["length_m"].between(0.07, 0.11).all()
+    # diameter_m is the mesh's mean caliper width: below the widest reading and the shape parameter
+    assert (fruits.diameter_m < fruits.diameter_max_m).all()
+    assert (fruits.diameter_max_m <= 1.01 * fruits.diameter_nominal_m).all()
+    assert (fruits.diameter_m / fruits.diameter_nominal_m).between(0.93, 0.97).all()
     assert yaml.safe_load((root / "gt" / "synth_config.yaml").read_text())["n_frames"] == 8
     assert (root / "t.bag").is_file() and ctx.summary["frames"] == 8 and ctx.summary["fruits_near"] > 5
 

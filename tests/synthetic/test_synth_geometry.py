@@ -35,6 +35,20 @@ def test_pepper_is_closed_outward_and_of_the_asked_size():
     assert np.mean(np.sum(normals * centroids, 1) > 0) > 0.97
 
 
+def test_calipers_measure_widths_across_the_axis():
+    ang = np.linspace(0, 2 * np.pi, 720, endpoint=False)
+    circle = np.stack([0.03 * np.cos(ang), 0.03 * np.sin(ang), np.linspace(-1, 1, 720)], 1)
+    mean, widest = meshes.calipers(circle)
+    assert abs(mean - 0.06) < 1e-4 and abs(widest - 0.06) < 1e-4          # z does not count
+    ellipse = circle * [2.0, 1.0, 1.0]                                     # semi-axes 6 and 3 cm
+    mean, widest = meshes.calipers(ellipse)
+    assert abs(widest - 0.12) < 1e-4 and 0.06 < mean < 0.12
+    # a lobed pepper is narrower than its shape parameter on average; its widest reading is close to it
+    for lobes in (3, 4):
+        mean, widest = meshes.calipers(meshes.pepper(0.08, 0.1, lobes, 0.3).vertices)
+        assert 0.93 * 0.08 < mean < 0.97 * 0.08 and mean < widest < 1.01 * 0.08
+
+
 def test_box_normals_point_out_and_tube_follows_its_polyline():
     b = meshes.box([0, 0, 0], [1, 2, 3])
     c = b.vertices[b.triangles].mean(1) - [0.5, 1.0, 1.5]
