@@ -39,6 +39,13 @@ class Config:
     windows cannot cover the row)."""
     min_overlap: int = 4
     """frames neighbouring windows share at least (cover_row; at most half_width)."""
+    context_frames: int = 4
+    """frames beyond each end of a window whose role is training also train it (never validate it): a fruit
+    entering or leaving the view in a window's last or first validation frames is otherwise seen by one or
+    two of its training frames, and the detector often misses it there (cut by the border). Default row: a
+    fruit entering window 1's last frames, detected in one of its two training frames, rendered as plant
+    in the validation frames beside them, while the neighbouring window fitted it from later frames.
+    0 = windows train on their own span only."""
     max_extend: int = 0
     """frames a window may grow by on each side to close a gap (cover_row; 0 = half_width // 2); longer
     gaps get filler windows."""
@@ -48,6 +55,8 @@ class Config:
             raise ValueError(f"windows.half_width must be >= 1, got {self.half_width}")
         if self.max_windows < 0 or self.unlabelled_spacing < 0 or self.max_extend < 0:
             raise ValueError("windows.max_windows, windows.unlabelled_spacing and windows.max_extend must be >= 0")
+        if self.context_frames < 0:
+            raise ValueError(f"windows.context_frames must be >= 0, got {self.context_frames}")
         if self.min_overlap < 0:
             raise ValueError(f"windows.min_overlap must be >= 0, got {self.min_overlap}")
 
@@ -114,10 +123,15 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
     anchor = pos[int(cs[0])] if len(cs) else 0
     labelled = {pos[int(c)] for c in cs} if from_labels else set()
     windows = spans([pos[int(c)] for c in cs], len(ids), cfg)
+    n_context = 0
     for w, (lo, hi, i) in enumerate(windows):
-        for j in range(lo, hi + 1):
+        for j in range(max(0, lo - cfg.context_frames), min(len(ids) - 1, hi + cfg.context_frames) + 1):
             off = j - i
             val = (j - anchor) % 2 == 0 or j in labelled or (off == 0 and not from_labels)
+            if not lo <= j <= hi:
+                if val:
+                    continue            # context frames only train: the window's span is what it renders
+                n_context += 1
             rows.append((w, int(ids[j]), int(ids[i]), off, "val" if val else "train", off == 0 and i in labelled))
     df = pd.DataFrame(rows, columns=["window_id", "frame_id", "center_frame_id", "offset", "split", "is_center"])
     df["n_windows"] = df.groupby("frame_id")["window_id"].transform("nunique").astype("int32")
@@ -126,7 +140,7 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
     if fillers:
         ctx.note(f"{fillers} filler window(s) without a labelled centre cover stretches of the row between or "
                  f"beyond the labelled frames (windows.cover_row)")
-    ctx.summary.update(windows=len(windows), filler_windows=fillers,
+    ctx.summary.update(windows=len(windows), filler_windows=fillers, context_train_frames=n_context,
                        frames_per_window=round(len(df) / max(len(windows), 1), 1),
                        frames_in_several_windows=overlap, frames_in_no_window=len(ids) - int(df.frame_id.nunique()))
     return {"windows": df}

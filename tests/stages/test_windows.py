@@ -10,6 +10,7 @@ def frames(n, labelled):
 
 
 def run(n, labelled, **cfg):
+    cfg.setdefault("context_frames", 0)      # the windows' own spans; test_context_frames_only_train has them
     ctx = StageContext(stage="windows", seq="t", data_root=".", show_progress=False)
     return windows.run({"frames": frames(n, labelled)}, windows.Config(**cfg), ctx)["windows"], ctx
 
@@ -86,3 +87,22 @@ def test_cover_row_is_off_with_max_windows_and_paper_windows_leave_gaps():
     assert w.window_id.nunique() == 2 and ctx.summary["frames_in_no_window"] > 0
     w, ctx = run(240, {60, 120, 179}, half_width=20, cover_row=False)
     assert w.window_id.nunique() == 3 and ctx.summary["frames_in_no_window"] == 240 - 3 * 41
+
+
+def test_context_frames_only_train_and_keep_every_frame_in_one_role():
+    plain, _ = run(120, {30, 60, 89}, half_width=20)
+    w, ctx = run(120, {30, 60, 89}, half_width=20, context_frames=4)
+    for wid, g in w.groupby("window_id"):
+        own = plain[plain.window_id == wid]
+        extra = g[~g.frame_id.isin(own.frame_id)]
+        # the window's own frames are unchanged; beyond them only training frames, at most 4 frames out
+        assert set(own.frame_id) <= set(g.frame_id) and (g[g.frame_id.isin(own.frame_id)].split.values ==
+                                                          own.split.values).all()
+        assert (extra.split == "train").all() and not extra.is_center.any()
+        lo, hi = own.frame_id.min(), own.frame_id.max()
+        assert ((extra.frame_id >= lo - 4) & (extra.frame_id <= hi + 4)).all()
+        assert len(extra) == (lo > 0) * 2 + (hi < 119) * 2        # every other frame is a training one
+    assert (w.groupby("frame_id")["split"].nunique() == 1).all()
+    assert ctx.summary["context_train_frames"] == 8
+    with pytest.raises(ValueError, match="context_frames must be >= 0"):
+        windows.Config(context_frames=-1)
