@@ -119,6 +119,14 @@ class PanopticConfig:
     complete_margin_m: float = 0.005
     """a pixel lies inside a fruit's sphere when its 3D point is within the radius plus this (rendered depth
     error)."""
+    complete_core: float = 0.7
+    """3D completion by ray: a stuff pixel whose ray passes within this share of an instance's sphere radius
+    of its centre, with a rendered depth not in front of where the ray enters that inner sphere (less
+    complete_margin_m), also joins the instance: at a fruit's silhouette and along the image border the
+    rendered depth blends into what lies behind, so the un-projected point misses the sphere though the ray
+    crosses the fruit. Nothing in front of the fruit (a leaf) is taken. 0 = off. Default row, saved renders
+    of the three windows: 0.7 -> PQ -0.2 / -0.1 / +0.05 points, ID consistency of window 2 0.93 -> 1.0 (a
+    fruit's one-pixel strip at the border); 0.85 -> PQ -0.7 to -1.4 points; 1.0 -> -4.5 to -6.5."""
     complete_min_points: int = 100
     """an instance needs this many un-projected pixels over the window's frames for its sphere."""
     complete_max_radius_m: float = 0.06
@@ -132,6 +140,8 @@ class PanopticConfig:
     def __post_init__(self) -> None:
         if not 0.0 <= self.stuff_confidence <= 1.0:
             raise ValueError(f"panoptic.stuff_confidence must lie in [0, 1], got {self.stuff_confidence}")
+        if not 0.0 <= self.complete_core <= 1.0:
+            raise ValueError(f"panoptic.complete_core must lie in [0, 1], got {self.complete_core}")
         if not 0.0 <= self.stuff_border < 0.5:
             raise ValueError(f"panoptic.stuff_border must lie in [0, 0.5), got {self.stuff_border}")
         if not 0.0 <= self.grow_threshold <= 1.0:
@@ -582,15 +592,37 @@ def complete_instances(frames: list[dict], intrinsics: np.ndarray, c2w: np.ndarr
         p = unproject(depth, k, pose, v, u)                             # [P, 3]
         rel = np.linalg.norm(p[:, None] - centres[None], axis=2)        # [P, S]
         inside = rel <= radii + cfg.complete_margin_m
+        score = np.where(inside, rel / radii, np.inf)
+        if cfg.complete_core > 0:
+            through, closest = rays_through_core(depth, k, pose, v, u, centres, radii * cfg.complete_core,
+                                                 cfg.complete_margin_m)
+            inside |= through
+            score = np.minimum(score, np.where(through, closest / radii, np.inf))
         hit = inside.any(1)
         if not hit.any():
             continue
-        best = np.where(inside, rel / radii, np.inf).argmin(1)
+        best = score.argmin(1)
         vv, uu, who = v[hit], u[hit], ids[best[hit]]
         f["instance"][vv, uu] = who
         f["semantic"][vv, uu] = [klass[int(i)] for i in who]
         added += int(hit.sum())
     return added
+
+
+def rays_through_core(depth: np.ndarray, k: np.ndarray, c2w: np.ndarray, v: np.ndarray, u: np.ndarray,
+                      centres: np.ndarray, core_radii: np.ndarray, margin_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """For pixels (v, u) of a frame with rendered z-depth `depth`, intrinsics k = (fx, fy, cx, cy) and pose
+    c2w, and spheres (centres [S, 3], core_radii [S]): ([P, S] bool: the pixel's ray passes within the
+    sphere in front of the camera and its rendered depth is not in front of the ray's entry into it by more
+    than margin_m, [P, S] the ray's closest distance to each centre)."""
+    d = np.stack([(u + 0.5 - k[2]) / k[0], (v + 0.5 - k[3]) / k[1], np.ones(len(u))], 1) @ c2w[:3, :3].T
+    norm = np.linalg.norm(d, axis=1)                                    # ray length per unit of z-depth
+    oc = centres - c2w[:3, 3]                                           # [S, 3]
+    along = (d / norm[:, None]) @ oc.T                                  # [P, S] ray length to the closest point
+    dist2 = np.maximum((oc ** 2).sum(1)[None] - along ** 2, 0.0)
+    entry_z = (along - np.sqrt(np.maximum(core_radii[None] ** 2 - dist2, 0.0))) / norm[:, None]
+    through = (dist2 <= core_radii[None] ** 2) & (along > 0) & (depth[v, u][:, None] >= entry_z - margin_m)
+    return through, np.sqrt(dist2)
 
 
 def grow_instances(sure: np.ndarray, slot: np.ndarray, weak: np.ndarray, depth: np.ndarray | None = None,

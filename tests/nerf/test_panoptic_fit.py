@@ -296,3 +296,38 @@ def test_complete_instances_gives_a_fruit_its_stuff_labelled_side_but_not_the_le
     assert (last["instance"][(truth == 0) & ~other] == 0).all()     # the wall behind stays stuff
     off = [dict(f, instance=f["instance"].copy()) for f in frames]
     assert complete_instances(off, k, np.stack(poses), PanopticConfig(instances=False)) == 0
+
+
+def test_completion_by_ray_takes_a_rim_whose_depth_fell_behind_but_not_the_wall_around_the_fruit():
+    from nerf.panoptic_fit import complete_instances, rays_through_core
+
+    centre, radius = np.array([0.0, 0.0, 0.5]), 0.04
+    frames, poses = [], []
+    for cam_x in (-0.02, 0.0, 0.02):
+        depth, hit, c2w = _sphere_view(centre, radius, cam_x)
+        frames.append({"semantic": np.where(hit, 2, 1).astype(np.uint8), "instance": np.where(hit, 7, 0).astype(np.int32),
+                       "depth": depth})
+        poses.append(c2w)
+    k = np.array([[50.0, 50.0, 30.0, 20.0]] * 3)
+    last, c2w = frames[-1], poses[-1]
+    truth = last["instance"].copy()
+    v, u = np.nonzero(truth == 7)
+    _, closest = rays_through_core(last["depth"], k[2], c2w, v, u, centre[None], np.array([radius]), 0.0)
+    core = np.zeros_like(truth, bool)
+    core[v, u] = closest[:, 0] <= 0.7 * radius
+    rim = (truth == 7) & ~core
+    # the head called the fruit's right half stuff, and there the rendered depth slid to the wall behind
+    cols = np.arange(truth.shape[1])[None, :].repeat(truth.shape[0], 0)
+    lost = (truth == 7) & (cols >= 28)
+    last["instance"][lost], last["semantic"][lost], last["depth"][lost] = 0, 1, 2.0
+    leaf = lost & (np.arange(truth.shape[0])[:, None] == 20)
+    last["depth"][leaf] = 0.3                                      # a leaf in front of the fruit stays a leaf
+    cfg = PanopticConfig(complete_margin_m=0.005, complete_min_points=50, complete_core=0.7)
+    off = [dict(f, instance=f["instance"].copy(), semantic=f["semantic"].copy()) for f in frames]
+    assert complete_instances(off, k, np.stack(poses), replace(cfg, complete_core=0.0)) == 0   # depth test only
+    added = complete_instances(frames, k, np.stack(poses), cfg)
+    taken = lost & core & ~leaf
+    assert added == int(taken.sum()) > 0
+    assert (last["instance"][taken] == 7).all() and (last["semantic"][taken] == 2).all()
+    assert (last["instance"][lost & rim] == 0).all() and (last["instance"][leaf] == 0).all()
+    assert (last["instance"][truth == 0] == 0).all()                # the wall around the fruit stays stuff
