@@ -132,6 +132,14 @@ class PanopticConfig:
     complete_max_radius_m: float = 0.06
     """largest plausible fruit radius for the sphere (sweet pepper: about 0.03-0.05 m). Default row: 0.08 let a
     cap's sphere fit of 7 cm claim the leaves around a 4 cm fruit (window 1 PQ 0.899 -> 0.863)."""
+    slot_reach_m: float = 0.12
+    """rendering: a rendered instance region (one slot's connected pixels in a frame) whose 3D centre lies
+    farther than this from where the slot's training segments placed it (the slot memory) is not that
+    slot's fruit: it takes the slot, among those placed within this distance of it, that the head gives the
+    most probability over the region (kept when there is none). A fruit entering a window's last frames is
+    seen by few training frames, and the head may paint it with the slot of a fruit 40 cm away. About twice
+    the largest fruit radius: a region's centre lies on the fruit's seen surface, the memory's on the
+    surfaces seen in training. 0 = off."""
     n_classes: int = 5
     """semantic classes (pipeline/classes.py)."""
     thing_classes: tuple[int, ...] = (2, 3, 4)
@@ -198,10 +206,14 @@ class PanopticResult:
     """frame draws whose thing segments were assigned to slots."""
     assign_s: float = 0.0
     """wall time of the assignments (costs, ID window, slot memory, linear_sum_assignment)."""
+    slot_centres: np.ndarray | None = None
+    """[n_slots, 3] world position of each slot's fruit from the assignments (the slot memory); NaN for a
+    slot no segment took (and for slot 0)."""
 
     def state(self) -> dict:
         return {"cfg": asdict(self.cfg), "field": self.field.state_dict(), "n_slots": self.n_slots,
-                "slot_window": asdict(self.slot_window) if self.slot_window else None}
+                "slot_window": asdict(self.slot_window) if self.slot_window else None,
+                "slot_centres": None if self.slot_centres is None else self.slot_centres.tolist()}
 
 
 def panoptic_field(model, cfg: PanopticConfig, n_slots: int) -> PanopticField:
@@ -456,6 +468,8 @@ def fit_panoptic(model, labels: WindowLabels, is_train: np.ndarray, depths: np.n
             if progress:
                 progress(step + 1, cfg.steps, {"loss": rec["loss"]})
     result.steps = cfg.steps
+    result.slot_centres = np.where((memory.count > 0)[:, None], memory.centre, np.nan)
+    result.slot_centres[0] = np.nan
     result.fit_s = time.perf_counter() - t0
     return result
 
@@ -484,14 +498,19 @@ def render_panoptic(model, pres: PanopticResult, i: int | None = None, c2w: Tens
     p_sem_img = torch.cat(p_sem).reshape(h, w, -1).cpu().numpy()
     p_inst_img = torch.cat(p_inst).reshape(h, w, -1).cpu().numpy()
     depth_img = torch.cat(depth).reshape(h, w)
-    sem, inst = panoptic_labels(p_sem_img, p_inst_img, cfg, depth_img.cpu().numpy())
+    points = None
+    if pres.slot_centres is not None and cfg.slot_reach_m > 0:
+        o, d = pixel_rays(k.expand(u.shape[0], 4), c2w.expand(u.shape[0], 4, 4), u, v)
+        points = (o + d * depth_img.reshape(-1, 1)).reshape(h, w, 3).cpu().numpy()
+    sem, inst = panoptic_labels(p_sem_img, p_inst_img, cfg, depth_img.cpu().numpy(), points, pres.slot_centres)
     return {"rgb": torch.cat(rgb).reshape(h, w, 3), "depth": depth_img,
             "opacity": torch.cat(opac).reshape(h, w), "semantic": sem, "instance": inst,
             "samples_per_ray": n_eval / (h * w)}
 
 
-def panoptic_labels(p_sem: np.ndarray, p_inst: np.ndarray, cfg: PanopticConfig,
-                    depth: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+def panoptic_labels(p_sem: np.ndarray, p_inst: np.ndarray, cfg: PanopticConfig, depth: np.ndarray | None = None,
+                    points: np.ndarray | None = None, slot_centres: np.ndarray | None = None
+                    ) -> tuple[np.ndarray, np.ndarray]:
     """Per-pixel distributions [H, W, D] / [H, W, N] -> semantic uint8 and instance int32 images.
 
     A pixel is a thing when the fruit classes together are more likely than each stuff class (the
@@ -503,7 +522,9 @@ def panoptic_labels(p_sem: np.ndarray, p_inst: np.ndarray, cfg: PanopticConfig,
     gets one 3x3 opening (erosion then dilation; the image border does not erode, so a fruit cut by it
     keeps its thin visible strip), instances smaller than cfg.min_segment_px are dropped,
     an instance's pixels take its majority thing class, and dropped pixels take their most likely
-    stuff class with instance 0."""
+    stuff class with instance 0. With the pixels' world `points` [H, W, 3] and the slots' `slot_centres`
+    [N, 3] (NaN = unplaced), a region too far from its slot's centre is handed to a slot placed near it
+    (reach_slots)."""
     things = np.array(cfg.thing_classes, np.int64)
     stuff = np.array([c for c in range(p_sem.shape[-1]) if c not in set(cfg.thing_classes)], np.int64)
     stuff_sem = stuff[p_sem[..., stuff].argmax(-1)] if stuff.size else np.zeros(p_sem.shape[:-1], np.int64)
@@ -517,6 +538,8 @@ def panoptic_labels(p_sem: np.ndarray, p_inst: np.ndarray, cfg: PanopticConfig,
     if not cfg.instances:  # semantic only: thing pixels keep their class, no instance ids
         return sem.astype(np.uint8), np.zeros(sem.shape, np.int32)
     inst = np.where(is_thing, slot, 0).astype(np.int32)
+    if points is not None and slot_centres is not None and cfg.slot_reach_m > 0:
+        inst = reach_slots(inst, p_inst, points, slot_centres, cfg.slot_reach_m)
     out_sem = sem.astype(np.uint8)
     out_inst = np.zeros_like(inst)
     kernel = np.ones((3, 3), bool)
@@ -532,6 +555,36 @@ def panoptic_labels(p_sem: np.ndarray, p_inst: np.ndarray, cfg: PanopticConfig,
     dropped = is_thing & (out_inst == 0)
     out_sem[dropped] = stuff_sem[dropped]
     return out_sem, out_inst
+
+
+def reach_slots(inst: np.ndarray, p_inst: np.ndarray, points: np.ndarray, centres: np.ndarray,
+                reach_m: float) -> np.ndarray:
+    """Instance image [H, W] (slots, 0 = none) with every 8-connected region of one slot whose 3D centre
+    (median of its pixels' `points` [H, W, 3]) lies farther than reach_m from the slot's placed centre
+    (`centres` [N, 3], NaN = never placed) relabelled to the slot placed within reach_m of the region with
+    the largest summed probability `p_inst` [H, W, N] over it; kept as it is when no slot is placed there.
+    Regions of unplaced slots are kept too."""
+    out = inst.copy()
+    placed = np.isfinite(centres).all(1)
+    eight = np.ones((3, 3), bool)
+    for sl_id in np.unique(inst[inst > 0]):
+        if not placed[sl_id]:
+            continue
+        regions, n = ndimage.label(inst == sl_id, eight)
+        for r in range(1, n + 1):
+            m = regions == r
+            pts = points[m]
+            pts = pts[np.isfinite(pts).all(1)]
+            if not len(pts):
+                continue
+            c = np.median(pts, 0)
+            dist = np.where(placed, np.linalg.norm(np.nan_to_num(centres) - c, axis=1), np.inf)
+            if dist[sl_id] <= reach_m:
+                continue
+            near = np.flatnonzero(dist <= reach_m)
+            if len(near):
+                out[m] = near[np.argmax(p_inst[m][:, near].sum(0))]
+    return out
 
 
 def instance_spheres(frames: list[tuple[np.ndarray, np.ndarray]], intrinsics: np.ndarray, c2w: np.ndarray,
@@ -651,5 +704,7 @@ def load_panoptic(state: dict, model, device: str = "cpu") -> PanopticResult:
     pfield = panoptic_field(model, cfg, state["n_slots"]).to(device)
     pfield.load_state_dict(state["field"])
     sw = SlotWindow(**state["slot_window"]) if state.get("slot_window") else None
-    return PanopticResult(pfield, cfg, sw, state["n_slots"], 0, 0.0, param_count(pfield))
+    centres = state.get("slot_centres")
+    return PanopticResult(pfield, cfg, sw, state["n_slots"], 0, 0.0, param_count(pfield),
+                          slot_centres=None if centres is None else np.asarray(centres, np.float64))
 

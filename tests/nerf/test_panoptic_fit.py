@@ -331,3 +331,39 @@ def test_completion_by_ray_takes_a_rim_whose_depth_fell_behind_but_not_the_wall_
     assert (last["instance"][taken] == 7).all() and (last["semantic"][taken] == 2).all()
     assert (last["instance"][lost & rim] == 0).all() and (last["instance"][leaf] == 0).all()
     assert (last["instance"][truth == 0] == 0).all()                # the wall around the fruit stays stuff
+
+
+def test_a_region_far_from_where_its_slot_was_placed_takes_the_slot_placed_there():
+    from nerf.panoptic_fit import reach_slots
+
+    h, w, n = 10, 40, 4
+    inst = np.zeros((h, w), np.int32)
+    points = np.zeros((h, w, 3))
+    points[..., 0] = np.arange(w)[None, :] * 0.025                 # x = 2.5 cm per column, 0 .. 1 m
+    inst[2:6, 1:5] = 1                                              # slot 1's fruit, near x = 0.06
+    inst[2:6, 16:20] = 1                                            # slot 1 painted on a fruit at x = 0.44
+    inst[2:6, 36:40] = 1                                            # ... and at x = 0.94, where no slot is
+    inst[7:9, 16:18] = 3                                            # slot 3 was never placed: kept
+    p_inst = np.full((h, w, n), 0.1)
+    p_inst[..., 2] = 0.3                                            # slot 2 is the next most likely
+    centres = np.array([[np.nan] * 3, [0.07, 0, 0], [0.45, 0, 0], [np.nan] * 3])
+    out = reach_slots(inst, p_inst, points, centres, reach_m=0.12)
+    assert (out[2:6, 1:5] == 1).all() and (out[2:6, 16:20] == 2).all()
+    assert (out[2:6, 36:40] == 1).all() and (out[7:9, 16:18] == 3).all() and (out[inst == 0] == 0).all()
+    # the probabilities choose among the slots within reach
+    centres[3] = [0.43, 0, 0]
+    p_inst[..., 3] = 0.5
+    out = reach_slots(inst, p_inst, points, centres, reach_m=0.12)
+    assert (out[2:6, 16:20] == 3).all()
+    # panoptic_labels applies it when given the points and the slot centres, and not with slot_reach_m = 0
+    p_sem = np.zeros((h, w, 5))
+    p_sem[..., 1] = 1.0
+    p_sem[inst > 0] = [0, 0, 1, 0, 0]
+    p_i = np.full((h, w, n), 0.01)
+    for sl in (1, 3):
+        p_i[inst == sl, sl] = 0.9
+    p_i[2:6, 16:20, 3] = 0.3                                        # the head's second choice there
+    cfg = PanopticConfig(min_segment_px=1, slot_reach_m=0.12)
+    _, on = panoptic_labels(p_sem, p_i, cfg, None, points, centres)
+    _, off = panoptic_labels(p_sem, p_i, replace(cfg, slot_reach_m=0.0), None, points, centres)
+    assert (on[2:6, 16:20] == 3).all() and (off[2:6, 16:20] == 1).all()
