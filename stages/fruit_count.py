@@ -9,6 +9,7 @@ from typing import Literal
 import numpy as np
 import pandas as pd
 from scipy.optimize import least_squares
+from scipy.stats import binom
 
 import schemas
 from nerf.geometry import pose_matrix
@@ -153,8 +154,6 @@ def detector_support(checked: dict[int, int], confirmed: dict[int, int], alpha: 
     fruit is confirmed this rarely) and unconfirmed = p < alpha and k / n < r / 2. The second test keeps a
     well-confirmed fruit under a detector that confirms nearly everything (the pooled rate makes the binomial
     overconfident: occluded fruits are missed more often than the average)."""
-    from scipy.stats import binom
-
     n_all = sum(checked.values())
     if not n_all:
         return {}
