@@ -186,7 +186,8 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
                 wtab[k] = [piv[k].get(f"window_{w:03d}", np.nan) for w in wtab.window_id]
     near = fruits[fruits.counted.astype(bool)]
     parts = [f"<h1>PAg-NeRF phenotyping report: {html.escape(ctx.seq)}</h1>",
-             f"<p>{len(near)} near-row fruits counted ({len(fruits) - len(near)} far-row fruits or fragments not "
+             f"<p>{len(near)} near-row fruits counted ({len(fruits) - len(near)} far-row fruits, fragments or fruits "
+             f"the detector does not confirm not "
              f"counted) in "
              f"{int((metrics.status == 'ok').sum())} of {len(metrics)} windows.</p>"]
     failed = metrics[metrics.status != "ok"]
@@ -201,7 +202,7 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
     if len(fruits):
         parts.append(f'<img src="{top_down_map(fruits, inputs["frames"])}" alt="fruit map">')
         cols = ["fruit_id", "class_name", "class_confidence", "x_m", "y_m", "z_m", "diameter_m", "height_m",
-                "median_depth_m", "n_frames", "n_windows", "first_frame_id", "last_frame_id"]
+                "median_depth_m", "n_frames", "n_confirmed_frames", "n_windows", "first_frame_id", "last_frame_id"]
         parts.append("<details><summary>near-row fruits</summary>" + table_html(near[cols]) + "</details>")
     else:
         parts.append("<p>No fruit was fused (no panoptic renders?).</p>")
