@@ -40,9 +40,9 @@ TRUNK_LAYERS = 4
 TRUNK_WIDTH = 128
 """width of the trunk (NeRF: 256)."""
 
-OURS_OFF = dict(memory_prior=0.0, stuff_confidence=1.0, complete_3d=False, slot_reach_m=0.0)
+OURS_OFF = dict(memory_prior=0.0, stuff_confidence=1.0, complete_3d=False, slot_reach_m=0.0, region_reach_m=0.0)
 """this project's additions to the panoptic phase, off for the baselines: the slot memory, the 3D instance
-completion, the render-time slot reach and the lower weight of stuff labels (a pixel without detection)."""
+completion, the render-time slot and region reach and the lower weight of stuff labels (a pixel without detection)."""
 SEMANTIC_ONLY = dict(grid_mode="shared", instances=False, id_window=False, **OURS_OFF)
 """PanopticConfig changes of the Semantic-NeRF-like baseline: semantic head on the trunk, no instances."""
 PANOPTIC_LIFTING_LIKE = dict(grid_mode="shared", id_window=False, **OURS_OFF)

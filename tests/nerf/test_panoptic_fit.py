@@ -367,3 +367,25 @@ def test_a_region_far_from_where_its_slot_was_placed_takes_the_slot_placed_there
     _, on = panoptic_labels(p_sem, p_i, cfg, None, points, centres)
     _, off = panoptic_labels(p_sem, p_i, replace(cfg, slot_reach_m=0.0), None, points, centres)
     assert (on[2:6, 16:20] == 3).all() and (off[2:6, 16:20] == 1).all()
+
+
+def test_a_small_far_region_of_a_slot_takes_the_slot_of_the_fruit_it_lies_on():
+    from nerf.panoptic_fit import split_far_regions
+
+    h, w, n = 10, 40, 4
+    inst = np.zeros((h, w), np.int32)
+    points = np.zeros((h, w, 3))
+    points[..., 0] = np.arange(w)[None, :] * 0.025                 # x = 2.5 cm per column
+    inst[1:9, 1:9] = 1                                              # fruit A: slot 1, large
+    inst[3:6, 18:20] = 1                                            # fruit B's left part painted with slot 1
+    inst[3:6, 20:23] = 2                                            # fruit B's own slot, beside it
+    inst[2:4, 36:38] = 1                                            # a far region with no other slot near it
+    p_inst = np.full((h, w, n), 0.1)
+    p_inst[..., 2] = 0.3
+    out = split_far_regions(inst, p_inst, points, reach_m=0.12)
+    assert (out[3:6, 18:23] == 2).all() and (out[1:9, 1:9] == 1).all()
+    assert (out[2:4, 36:38] == 1).all() and (out[inst == 0] == 0).all()
+    # a slot with one region, or regions within reach of each other, is left alone
+    near = np.zeros((h, w), np.int32)
+    near[1:4, 1:4] = near[6:9, 5:8] = 3
+    assert np.array_equal(split_far_regions(near, p_inst, points, 0.12), near)
