@@ -363,7 +363,7 @@ def test_a_region_far_from_where_its_slot_was_placed_takes_the_slot_placed_there
     for sl in (1, 3):
         p_i[inst == sl, sl] = 0.9
     p_i[2:6, 16:20, 3] = 0.3                                        # the head's second choice there
-    cfg = PanopticConfig(min_segment_px=1, slot_reach_m=0.12)        # off by default
+    cfg = PanopticConfig(min_segment_px=1, slot_reach_m=0.12, region_reach_m=0.0)   # slot reach alone
     _, on = panoptic_labels(p_sem, p_i, cfg, None, points, centres)
     _, off = panoptic_labels(p_sem, p_i, replace(cfg, slot_reach_m=0.0), None, points, centres)
     assert (on[2:6, 16:20] == 3).all() and (off[2:6, 16:20] == 1).all()
