@@ -382,7 +382,7 @@ def test_a_small_far_region_of_a_slot_takes_the_slot_of_the_fruit_it_lies_on():
     inst[2:4, 36:38] = 1                                            # a far region with no other slot near it
     p_inst = np.full((h, w, n), 0.1)
     p_inst[..., 2] = 0.3
-    out = split_far_regions(inst, p_inst, points, reach_m=0.12)
+    out = split_far_regions(inst, p_inst, points, reach_m=0.12)      # off by default (region_reach_m)
     assert (out[3:6, 18:23] == 2).all() and (out[1:9, 1:9] == 1).all()
     assert (out[2:4, 36:38] == 1).all() and (out[inst == 0] == 0).all()
     # a slot with one region, or regions within reach of each other, is left alone
