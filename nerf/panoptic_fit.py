@@ -568,13 +568,11 @@ def panoptic_labels(p_sem: np.ndarray, p_inst: np.ndarray, cfg: PanopticConfig, 
     return out_sem, out_inst
 
 
-def split_far_regions(inst: np.ndarray, p_inst: np.ndarray, points: np.ndarray, reach_m: float) -> np.ndarray:
-    """Instance image [H, W] (slots, 0 = none) with every 8-connected region of a slot whose 3D centre (median
-    of its pixels' `points` [H, W, 3]) lies farther than reach_m from the centre of that slot's largest
-    region in the frame relabelled to the slot whose largest region lies within reach_m of it with the
-    largest summed probability `p_inst` [H, W, N] over the region; kept when no such slot exists."""
+def slot_regions(inst: np.ndarray, points: np.ndarray) -> dict[int, list[tuple[np.ndarray, np.ndarray]]]:
+    """{slot: [(mask [H, W], 3D centre [3])]} of the 8-connected regions of each slot of the instance image
+    [H, W] (0 = none), largest first; centre = median of the region's finite `points` [H, W, 3] (NaN if none)."""
     eight = np.ones((3, 3), bool)
-    regions: dict[int, list[tuple[np.ndarray, np.ndarray]]] = {}     # slot -> [(mask, centre)], largest first
+    out = {}
     for sl_id in np.unique(inst[inst > 0]):
         lab, n = ndimage.label(inst == sl_id, eight)
         found = []
@@ -583,7 +581,16 @@ def split_far_regions(inst: np.ndarray, p_inst: np.ndarray, points: np.ndarray, 
             pts = points[m]
             pts = pts[np.isfinite(pts).all(1)]
             found.append((m, np.median(pts, 0) if len(pts) else np.full(3, np.nan)))
-        regions[int(sl_id)] = sorted(found, key=lambda x: -int(x[0].sum()))
+        out[int(sl_id)] = sorted(found, key=lambda x: -int(x[0].sum()))
+    return out
+
+
+def split_far_regions(inst: np.ndarray, p_inst: np.ndarray, points: np.ndarray, reach_m: float) -> np.ndarray:
+    """Instance image [H, W] (slots, 0 = none) with every 8-connected region of a slot whose 3D centre (median
+    of its pixels' `points` [H, W, 3]) lies farther than reach_m from the centre of that slot's largest
+    region in the frame relabelled to the slot whose largest region lies within reach_m of it with the
+    largest summed probability `p_inst` [H, W, N] over the region; kept when no such slot exists."""
+    regions = slot_regions(inst, points)
     main = {sl: rs[0][1] for sl, rs in regions.items()}
     out = inst.copy()
     for sl, rs in regions.items():
@@ -605,18 +612,12 @@ def reach_slots(inst: np.ndarray, p_inst: np.ndarray, points: np.ndarray, centre
     Regions of unplaced slots are kept too."""
     out = inst.copy()
     placed = np.isfinite(centres).all(1)
-    eight = np.ones((3, 3), bool)
-    for sl_id in np.unique(inst[inst > 0]):
+    for sl_id, rs in slot_regions(inst, points).items():
         if not placed[sl_id]:
             continue
-        regions, n = ndimage.label(inst == sl_id, eight)
-        for r in range(1, n + 1):
-            m = regions == r
-            pts = points[m]
-            pts = pts[np.isfinite(pts).all(1)]
-            if not len(pts):
+        for m, c in rs:
+            if not np.isfinite(c).all():
                 continue
-            c = np.median(pts, 0)
             dist = np.where(placed, np.linalg.norm(np.nan_to_num(centres) - c, axis=1), np.inf)
             if dist[sl_id] <= reach_m:
                 continue
@@ -707,7 +708,7 @@ def rays_through_core(depth: np.ndarray, k: np.ndarray, c2w: np.ndarray, v: np.n
     c2w, and spheres (centres [S, 3], core_radii [S]): ([P, S] bool: the pixel's ray passes within the
     sphere in front of the camera and its rendered depth is not in front of the ray's entry into it by more
     than margin_m, [P, S] the ray's closest distance to each centre)."""
-    d = np.stack([(u + 0.5 - k[2]) / k[0], (v + 0.5 - k[3]) / k[1], np.ones(len(u))], 1) @ c2w[:3, :3].T
+    d = unproject(np.ones_like(depth), k, c2w, v, u) - c2w[:3, 3]      # world rays with camera z = 1
     norm = np.linalg.norm(d, axis=1)                                    # ray length per unit of z-depth
     oc = centres - c2w[:3, 3]                                           # [S, 3]
     along = (d / norm[:, None]) @ oc.T                                  # [P, S] ray length to the closest point
