@@ -34,6 +34,10 @@ class NerfConfig:
     1900, 24.3 -> 24.2; 1800 steps took 168-223 s per window in the pipeline)."""
     rays_per_step: int = 1024
     """rays per step."""
+    edge_ray_share: float = 0.0
+    """share of each step's rays drawn with probability proportional to the training image's colour gradient
+    magnitude (the rest uniformly over the training pixels): most of the colour error sits on fine texture and
+    occlusion edges."""
     lr_grid: float = 2e-2
     """Adam learning rate of the hash tables."""
     lr_mlp: float = 1e-2

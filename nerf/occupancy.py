@@ -32,8 +32,11 @@ class OccupancyGrid:
         return flat, inside
 
     def query(self, pts: Tensor) -> Tensor:
+        """World points [N, 3] -> [N] bool: inside the bounds and in an occupied cell."""
         flat, inside = self.index(pts)
         return self.occupied[flat] & inside
+
+    __call__ = query  # the grid is an occupied_fn itself (render.march then uses the fused kernel on the CPU)
 
     def cell_centres(self, flat: Tensor) -> Tensor:
         k = flat % self.res[2]

@@ -36,7 +36,7 @@ from nerf.field import param_count
 from nerf.panoptic import PanopticField, integrate_probs
 from nerf.panoptic_losses import consistency_loss, instance_loss, semantic_loss
 from nerf.surfaces import fit_sphere, plausible_fit, principal_extents, robust_centre, unproject
-from nerf.render import candidates, composite_weights, pack, pixel_rays
+from nerf.render import Rounds, composite_weights, pixel_rays
 
 VOID = 255
 
@@ -268,11 +268,11 @@ def weighted_samples(model, o: Tensor, d: Tensor, min_weight: float, round_sampl
     xs, gs, ws, rs = [], [], [], []
     n_eval = 0
     with torch.no_grad():
-        t_all, occ_all = candidates(o, d, edges, occ, jitter=False)
+        rounds = Rounds(o, d, edges, occ)
     r = 0
     while active.numel():
         with torch.no_grad():
-            s = pack(t_all, occ_all, edges, d, first=r * round_samples, max_per_ray=round_samples, rows=active)
+            s = rounds.take(active, r * round_samples, round_samples)
         if len(s) == 0:
             break
         with torch.set_grad_enabled(keep_grad_features):

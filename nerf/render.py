@@ -95,12 +95,57 @@ def pack(t: Tensor, occ: Tensor, edges: Tensor, dirs: Tensor, first: int = 0, ma
 
 
 def march(origins: Tensor, dirs: Tensor, edges: Tensor, occupied_fn, jitter: bool, max_per_ray: int = 0,
-          first: int = 0, t_max: Tensor | None = None) -> Samples:
+          first: int = 0, t_max: Tensor | None = None, fused: bool = True) -> Samples:
     """Samples at `edges` (midpoints or jittered) kept where `occupied_fn(points)` says the cell is
     occupied; `first`/`max_per_ray` select the occupied samples ranked [first, first+max) per ray.
-    origins/dirs [R, 3] -> Samples."""
-    t, occ = candidates(origins, dirs, edges, occupied_fn, jitter, t_max)
-    return pack(t, occ, edges, dirs, first, max_per_ray)
+    origins/dirs [R, 3] -> Samples. When `occupied_fn` is an OccupancyGrid on the CPU and the fused
+    kernel is built (and `fused`), the kernel does candidates() + pack() in one pass over the rays, with
+    the same random draws and arithmetic: the same samples (tests/nerf/test_render.py)."""
+    ext = _march_ext(origins, occupied_fn) if fused else None
+    if ext is None:
+        t, occ = candidates(origins, dirs, edges, occupied_fn, jitter, t_max)
+        return pack(t, occ, edges, dirs, first, max_per_ray)
+    r = origins.shape[0]
+    u = torch.rand(r, edges.shape[0] - 1, device=origins.device) if jitter else None
+    g = occupied_fn
+    with torch.no_grad():
+        ray_index, col, t = ext.march_occupied(
+            origins.detach().float().contiguous(), dirs.detach().float().contiguous(), edges.contiguous(), u,
+            g.occupied.contiguous(), g.lo.contiguous(), g.cell.float().contiguous(), g.res,
+            None if t_max is None else t_max.detach().float().contiguous(), first, max_per_ray)
+    norm = dirs.norm(dim=-1)
+    return Samples(ray_index, t, ((edges[1:] - edges[:-1])[col]) * norm[ray_index], r)
+
+
+class Rounds:
+    """The occupied mid-point samples of a ray batch, taken in rounds (rendering with early termination):
+    take(rows, first, n) = the samples ranked [first, first + n) of the rays `rows`, ray_index into rows.
+    With the fused kernel each round marches its rays again (cheap); without it, the candidates are
+    computed once and packed per round."""
+
+    def __init__(self, origins: Tensor, dirs: Tensor, edges: Tensor, occupied_fn):
+        self.o, self.d, self.edges, self.occupied_fn = origins, dirs, edges, occupied_fn
+        self.fused = _march_ext(origins, occupied_fn) is not None
+        if not self.fused:
+            self.t, self.occ = candidates(origins, dirs, edges, occupied_fn, jitter=False)
+
+    def take(self, rows: Tensor, first: int, n: int) -> Samples:
+        if self.fused:
+            return march(self.o[rows], self.d[rows], self.edges, self.occupied_fn, jitter=False, max_per_ray=n,
+                         first=first)
+        return pack(self.t, self.occ, self.edges, self.d, first=first, max_per_ray=n, rows=rows)
+
+
+def _march_ext(origins: Tensor, occupied_fn):
+    """The fused kernels' module when march() can use them here, else None."""
+    from nerf.occupancy import OccupancyGrid
+
+    if origins.device.type != "cpu" or not isinstance(occupied_fn, OccupancyGrid):
+        return None
+    from nerf._ext import load_permuto_ext
+
+    ext = load_permuto_ext("cpu")
+    return ext if ext is not None and hasattr(ext, "march_occupied") else None
 
 
 def depth_guided(depth: Tensor, dirs: Tensor, n_surface: int, n_free: int, near: float, far: float,

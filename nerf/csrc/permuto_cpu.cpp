@@ -29,6 +29,8 @@
 #include <omp.h>
 
 #include <algorithm>
+#include <climits>
+#include <cmath>
 #include <cstdint>
 #include <cstdlib>
 #include <cstring>
@@ -466,6 +468,8 @@ double random_access(torch::Tensor table, int64_t n_points, int64_t reads, int64
   return total;
 }
 
+#include "march_cpu.h"
+
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("permuto_forward", &permuto_forward, "permutohedral hash encoding forward: (features, jacobian)");
   m.def("permuto_backward", &permuto_backward, "permutohedral hash encoding backward: (grad_table, grad_x)");
@@ -473,4 +477,5 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("cubic_backward", &cubic_backward, "cubic hash grid backward: (grad_table, grad_x)");
   m.def("permuto_simplices", &permuto_simplices, "hashed rows and barycentric weights of one level");
   m.def("random_access", &random_access, "random read / read-modify-write microbenchmark");
+  m.def("march_occupied", &march_occupied, "cone marching through the occupancy grid: (ray_index, col, t)");
 }

@@ -69,3 +69,70 @@ def test_depth_guided_samples_sit_around_the_sensor_depth():
     assert ((t[0, 3:] > 0.95) & (t[0, 3:] < 1.03)).all() and (t[0, :3] < 0.96).all()
     assert t[1].min() >= 0.1 and t[1].max() <= 3.0 and t[1].max() > 2.5     # no depth: whole range
     assert (torch.diff(t, dim=1) >= 0).all() and (s.delta > 0).all()
+
+
+def random_grid(seed=0):
+    from nerf.occupancy import OccupancyGrid
+
+    g = torch.Generator().manual_seed(seed)
+    grid = OccupancyGrid(torch.tensor([-1.0, -0.5, 0.0]), torch.tensor([1.0, 0.5, 2.5]), 24)
+    grid.occupied = torch.rand(grid.occupied.shape[0], generator=g) < 0.3
+    return grid
+
+
+def grid_rays(n=300, seed=0):
+    """Rays from inside and outside the grid's bounds, some never entering it, one with zero direction."""
+    g = torch.Generator().manual_seed(seed)
+    o = torch.rand(n, 3, generator=g) * torch.tensor([3.0, 2.0, 1.0]) - torch.tensor([1.5, 1.0, 0.5])
+    d = torch.randn(n, 3, generator=g) * 0.3 + torch.tensor([0.0, 0.0, 1.0])
+    d[0] = 0
+    d[1] = torch.tensor([0.0, 0.0, -1.0])
+    return o, d
+
+
+def test_fused_march_equals_torch_reference():
+    import pytest
+
+    from nerf.render import Rounds, _march_ext
+
+    grid = random_grid()
+    o, d = grid_rays()
+    if _march_ext(o, grid) is None:
+        pytest.skip("no C++ toolchain here: the fused kernel is unavailable")
+    edges = cone_steps(0.1, 3.0, 0.03, torch.device("cpu"))
+    t_max = torch.rand(o.shape[0], generator=torch.Generator().manual_seed(1)) * 3
+    cases = [dict(jitter=False), dict(jitter=True), dict(jitter=True, max_per_ray=5),
+             dict(jitter=False, first=3, max_per_ray=4), dict(jitter=True, t_max=t_max), dict(jitter=False, first=2)]
+    for kw in cases:
+        torch.manual_seed(7)
+        ref = march(o, d, edges, grid, fused=False, **kw)
+        torch.manual_seed(7)
+        got = march(o, d, edges, grid, **kw)
+        assert len(ref) > 100, kw
+        assert torch.equal(got.ray_index, ref.ray_index), kw
+        assert torch.equal(got.t_mid, ref.t_mid) and torch.equal(got.delta, ref.delta), kw
+    # rendering in rounds: the same samples as packing the candidates once
+    rows = torch.arange(0, o.shape[0], 3)
+    fused = Rounds(o, d, edges, grid)
+    assert fused.fused
+    ref = Rounds(o, d, edges, lambda p: grid.query(p))
+    for first, n in ((0, 8), (8, 16), (24, 32)):
+        a, b = fused.take(rows, first, n), ref.take(rows, first, n)
+        assert torch.equal(a.ray_index, b.ray_index) and torch.equal(a.t_mid, b.t_mid) and torch.equal(a.delta, b.delta)
+
+
+def test_fused_march_rejects_bad_inputs():
+    import pytest
+
+    from nerf.render import _march_ext
+
+    grid = random_grid()
+    o, d = grid_rays(10)
+    ext = _march_ext(o, grid)
+    if ext is None:
+        pytest.skip("no C++ toolchain here: the fused kernel is unavailable")
+    edges = cone_steps(0.1, 3.0, 0.03, torch.device("cpu"))
+    with pytest.raises(RuntimeError, match="occupied has"):
+        ext.march_occupied(o, d, edges, None, grid.occupied[:-1], grid.lo, grid.cell, grid.res, None, 0, 0)
+    with pytest.raises(RuntimeError, match="u must be"):
+        ext.march_occupied(o, d, edges, torch.rand(3, 3), grid.occupied, grid.lo, grid.cell, grid.res, None, 0, 0)

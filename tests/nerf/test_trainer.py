@@ -95,3 +95,23 @@ def test_depth_loss_skips_depth_edges_and_pixels_next_to_lost_depth():
     plain = depth_supervised(d, 0.0, 3.5)                        # edge_m 0: every valid pixel below far
     assert plain.sum() == 6 * 7 - 2 and plain[0, :, 3:5].all()
     assert depth_supervised(d, 1.0, 3.5)[0, :, 3:5].all()         # a step below edge_m is no edge
+
+
+def test_edge_rays_are_drawn_where_the_image_has_texture():
+    from nerf.trainer import gradient_cdf
+
+    img = torch.zeros(2, 20, 30, 3, dtype=torch.uint8)
+    img[0, :, 15:] = 200            # a vertical edge between columns 14 and 15 of frame 0; frame 1 is flat
+    cdf = gradient_cdf(img)
+    pick = torch.searchsorted(cdf, torch.rand(4000, generator=torch.Generator().manual_seed(0),
+                                              dtype=torch.float64) * cdf[-1])
+    frame, col = pick // (20 * 30), pick % 30
+    on_edge = (frame == 0) & ((col == 14) | (col == 15))
+    assert on_edge.float().mean() > 0.8           # 40 of 1200 pixels carry the edge
+    assert (frame == 1).any()                     # the floor keeps every pixel drawable
+
+
+def test_edge_ray_share_fits(window):
+    cfg = replace(preset("cpu"), steps=30, rays_per_step=256, edge_ray_share=0.5, refine_poses=False)
+    res = fit_window(window, cfg, render_val=False)
+    assert np.isfinite(res.train_psnr) and res.history[-1]["samples_per_ray"] > 0
