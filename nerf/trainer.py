@@ -298,7 +298,7 @@ def fit_window(data: WindowData, cfg: NerfConfig, device: str = "cpu",
         *fld.param_groups(cfg),
         {"params": list(poses.parameters()), "lr": cfg.lr_pose if cfg.refine_poses else 0.0},
     ], fused=fused_adam(dev))
-    sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: 0.1 ** min(1.0, s / max(cfg.steps, 1)))
+    sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: cfg.lr_decay ** min(1.0, s / max(cfg.steps, 1)))
     val_opt = torch.optim.Adam(poses.parameters(), lr=cfg.lr_pose * 3)
     edges = model.edges(dev)
     occ_fn = model.occupied_fn()
