@@ -51,7 +51,7 @@ def test_panoptic_losses_move_neither_density_nor_poses():
     cfg = preset("cpu", n_levels=4, log2_capacity=10)
     field = RadianceField(cfg, scene_scale_m=1.0)
     poses = PoseCorrection(1, scale_m=1.0)
-    pan = PanopticField(4, 2, 8, cfg.coarsest_res_m, cfg.finest_res_m, n_classes=5, n_slots=8)
+    pan = PanopticField(cfg.n_levels, cfg.n_features, 8, cfg.coarsest_res_m, cfg.finest_res_m, n_classes=5, n_slots=8)
     c2w = poses.apply(torch.eye(4)[None], torch.tensor([0]))
     x = c2w[0, :3, 3] + torch.rand(32, 3)                         # positions depend on the pose
     d = torch.nn.functional.normalize(torch.rand(32, 3), dim=-1)
