@@ -34,10 +34,12 @@ class NerfConfig:
     field_kind: Literal["permuto", "mlp_pe"] = "permuto"
     """radiance field: 'permuto' (hash grid + small decoders, ours) or 'mlp_pe' (the Semantic-NeRF-like
     baseline: an MLP on a Fourier encoding of position and direction, nerf/baselines.py)."""
-    steps: int = 1500
-    """optimisation steps (the cpu preset is sized for under 3 minutes per window with 2 workers on 2 cores; on
-    the default row val PSNR grows about 2.5 dB from 600 to 1500 steps, 21.4 -> 24.1, and not from 1500 to
-    1900, 24.3 -> 24.2; 1800 steps took 168-223 s per window in the pipeline)."""
+    steps: int = 1300
+    """optimisation steps (the cpu preset is sized for under 3 minutes per window with 2 workers on 2 cores, with
+    a margin: the same fit runs up to a quarter slower in the pipeline than alone in a process). Default row,
+    window 1, the cpu preset: 1300 steps -> val 27.1 dB in 138 s, 1500 -> 27.4 dB in 161 s (197.6 s in one
+    pipeline run: over the budget). Older model (10 x 2, 2^16): 600 -> 1500 steps 21.4 -> 24.1 dB, 1500 -> 1900
+    24.3 -> 24.2."""
     rays_per_step: int = 1024
     """rays per step."""
     edge_ray_share: float = 0.25
