@@ -90,8 +90,13 @@ def pack(t: Tensor, occ: Tensor, edges: Tensor, dirs: Tensor, first: int = 0, ma
         if max_per_ray:
             occ = occ & (rank < first + max_per_ray)
     ray_index, col = occ.nonzero(as_tuple=True)
-    norm = dirs.norm(dim=-1)
-    return Samples(ray_index, t[ray_index, col], ((edges[1:] - edges[:-1])[col]) * norm[ray_index], t.shape[0])
+    return _packed(ray_index, col, t[ray_index, col], edges, dirs)
+
+
+def _packed(ray_index: Tensor, col: Tensor, t: Tensor, edges: Tensor, dirs: Tensor) -> Samples:
+    """Samples from the kept candidates (ray, candidate index, depth): each one's length along its ray is
+    its edge interval times |d|."""
+    return Samples(ray_index, t, (edges[1:] - edges[:-1])[col] * dirs.norm(dim=-1)[ray_index], dirs.shape[0])
 
 
 def march(origins: Tensor, dirs: Tensor, edges: Tensor, occupied_fn, jitter: bool, max_per_ray: int = 0,
@@ -113,8 +118,7 @@ def march(origins: Tensor, dirs: Tensor, edges: Tensor, occupied_fn, jitter: boo
             origins.detach().float().contiguous(), dirs.detach().float().contiguous(), edges.contiguous(), u,
             g.occupied.contiguous(), g.lo.contiguous(), g.cell.float().contiguous(), g.res,
             None if t_max is None else t_max.detach().float().contiguous(), first, max_per_ray)
-    norm = dirs.norm(dim=-1)
-    return Samples(ray_index, t, ((edges[1:] - edges[:-1])[col]) * norm[ray_index], r)
+    return _packed(ray_index, col, t, edges, dirs)
 
 
 class Rounds:

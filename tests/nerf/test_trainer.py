@@ -98,13 +98,11 @@ def test_depth_loss_skips_depth_edges_and_pixels_next_to_lost_depth():
 
 
 def test_edge_rays_are_drawn_where_the_image_has_texture():
-    from nerf.trainer import gradient_cdf
+    from nerf.trainer import draw_from_cdf, gradient_cdf
 
     img = torch.zeros(2, 20, 30, 3, dtype=torch.uint8)
     img[0, :, 15:] = 200            # a vertical edge between columns 14 and 15 of frame 0; frame 1 is flat
-    cdf = gradient_cdf(img)
-    pick = torch.searchsorted(cdf, torch.rand(4000, generator=torch.Generator().manual_seed(0),
-                                              dtype=torch.float64) * cdf[-1])
+    pick = draw_from_cdf(gradient_cdf(img), 4000, torch.Generator().manual_seed(0))
     frame, col = pick // (20 * 30), pick % 30
     on_edge = (frame == 0) & ((col == 14) | (col == 15))
     assert on_edge.float().mean() > 0.8           # 40 of 1200 pixels carry the edge
