@@ -58,9 +58,13 @@ def sample_points(n: int, kind: str, seed: int = 0) -> torch.Tensor:
 
 
 def _train_step(enc: torch.nn.Module, x: torch.Tensor, grad_x: bool) -> Callable[[], None]:
+    """Forward, then backward of a fixed dense upstream gradient (what the decoder hands the encoding in
+    training; `.sum().backward()` would hand it a stride-0 tensor that the kernel first has to copy out)."""
+    grad_out = torch.randn(x.shape[0], enc.out_dim, generator=torch.Generator().manual_seed(1))
+
     def step() -> None:
         xx = x.detach().requires_grad_(grad_x)
-        enc(xx).sum().backward()
+        enc(xx).backward(grad_out)
         enc.table.grad = None
     return step
 

@@ -139,11 +139,15 @@ class _FusedEncode(torch.autograd.Function):
     """The C++/CUDA kernels as one autograd node. When x requires grad and need_jac (see
     JACOBIAN_IN_FORWARD), the CPU forward also returns d features / d x ([L, 3 F, N], read while the
     table rows are in cache) and the backward contracts it with grad_out; otherwise (and always on
-    CUDA, whose kernels return None there) the backward reads the rows again."""
+    CUDA, whose kernels return None there) the backward reads the rows again. With `bound` (the CPU
+    kernels) the kernel clamps x to [-bound, bound] itself (NaN -> 0) and gives the clamped
+    coordinates no gradient, as torch.nan_to_num + clamp would; without it x must be clamped already."""
 
     @staticmethod
-    def forward(ctx, x: Tensor, table: Tensor, coef: Tensor, shifts: Tensor, ext, kind: str, need_jac: bool) -> Tensor:
-        out, jac = getattr(ext, f"{kind}_forward")(x, table, coef, shifts, need_jac)
+    def forward(ctx, x: Tensor, table: Tensor, coef: Tensor, shifts: Tensor, ext, kind: str, need_jac: bool,
+                bound: float | None = None) -> Tensor:
+        ctx.extra = () if bound is None else (bound,)
+        out, jac = getattr(ext, f"{kind}_forward")(x, table, coef, shifts, need_jac, *ctx.extra)
         ctx.save_for_backward(x, table, coef, shifts)
         ctx.ext, ctx.kind, ctx.jac = ext, kind, jac
         return out
@@ -153,9 +157,9 @@ class _FusedEncode(torch.autograd.Function):
         x, table, coef, shifts = ctx.saved_tensors
         need_x, need_table = ctx.needs_input_grad[0], ctx.needs_input_grad[1]
         g_table, g_x = getattr(ctx.ext, f"{ctx.kind}_backward")(grad_out.float().contiguous(), x, table, coef,
-                                                                shifts, ctx.jac, need_table, need_x)
+                                                                shifts, ctx.jac, need_table, need_x, *ctx.extra)
         ctx.jac = None
-        return (g_x if need_x else None), (g_table if need_table else None), None, None, None, None, None
+        return (g_x if need_x else None), (g_table if need_table else None), None, None, None, None, None, None
 
 
 class PermutoEncoding(nn.Module):
@@ -215,12 +219,16 @@ class PermutoEncoding(nn.Module):
             raise ValueError(f"expected positions [N, 3], got {tuple(x.shape)}")
         with torch.autocast(device_type=x.device.type, enabled=False):
             b = self.bound
-            x = torch.nan_to_num(x.float(), nan=0.0, posinf=b, neginf=-b).clamp(-b, b)
             ext = self._kernels(x.device)
-            if ext is not None and self.table.dtype == torch.float32:
+            fused = ext is not None and self.table.dtype == torch.float32
+            if fused and x.device.type == "cpu":  # the CPU kernel clamps while it packs the points
                 need_jac = JACOBIAN_IN_FORWARD and torch.is_grad_enabled() and x.requires_grad
+                return _FusedEncode.apply(x.float().contiguous(), self.table, self.coef.float(), self.shifts.float(),
+                                          ext, self.kind, need_jac, b)
+            x = torch.nan_to_num(x.float(), nan=0.0, posinf=b, neginf=-b).clamp(-b, b)
+            if fused:
                 return _FusedEncode.apply(x.contiguous(), self.table, self.coef.float(), self.shifts.float(), ext,
-                                          self.kind, need_jac)
+                                          self.kind, False)
             ref = permuto_encode_reference if self.kind == "permuto" else cubic_encode_reference
             return ref(x.to(self.table.dtype), self.table, self.scales.to(self.table.dtype), self.shifts.to(self.table.dtype))
 

@@ -268,8 +268,10 @@ void transpose_outer(const float* src, float* dst, int64_t A, int64_t B, int64_t
 }
 
 // x [N, 3] -> blocked structure of arrays (block b: [3][BLOCK] at 3 * b * BLOCK, zero-padded), the
-// layout the lattice code reads with plain vector loads. Kept in scratch slot 2.
-const float* blocked_points(const torch::Tensor& x) {
+// layout the lattice code reads with plain vector loads, each coordinate clamped to [-bound, bound]
+// and NaN made 0 on the way (torch.nan_to_num + clamp, without their passes over x and, in the
+// backward, the masks of theirs that autograd would build). Kept in scratch slot 2.
+const float* blocked_points(const torch::Tensor& x, float bound) {
   const int64_t N = x.size(0), nblocks = (N + BLOCK - 1) / BLOCK;
   float* xs = scratch(2, (size_t)(nblocks * 3 * BLOCK));
   const float* px = x.data_ptr<float>();
@@ -278,22 +280,24 @@ const float* blocked_points(const torch::Tensor& x) {
     for (int d = 0; d < 3; ++d)
       for (int64_t j = 0; j < BLOCK; ++j) {
         const int64_t n = b * BLOCK + j;
-        xs[(b * 3 + d) * BLOCK + j] = n < N ? px[3 * n + d] : 0.f;
+        const float v = n < N ? px[3 * n + d] : 0.f;
+        xs[(b * 3 + d) * BLOCK + j] = v != v ? 0.f : std::min(std::max(v, -bound), bound);
       }
   return xs;
 }
 
-// Features [N, L * F]; with need_jac also d features / d x as [L, 3 F, N] (planes per level),
-// which the backward contracts with grad_out instead of reading the table again.
+// Features [N, L * F] of x clamped to [-bound, bound]; with need_jac also d features / d x as
+// [L, 3 F, N] (planes per level), which the backward contracts with grad_out instead of reading the
+// table again.
 std::vector<torch::Tensor> forward_impl(Kind kind, torch::Tensor x, torch::Tensor table, torch::Tensor coef,
-                                        torch::Tensor shifts, bool need_jac) {
+                                        torch::Tensor shifts, bool need_jac, double bound) {
   check(x, table, coef, shifts);
   x = x.contiguous(); table = table.contiguous(); coef = coef.contiguous(); shifts = shifts.contiguous();
   const int64_t N = x.size(0), L = table.size(0), T = table.size(1), F = table.size(2);
   float* buf = scratch(0, (size_t)(L * N * F));  // [L, N, F]
   auto jac = need_jac ? pooled_empty({L, 3 * F, N}) : torch::Tensor();
   float* pj = need_jac ? jac.data_ptr<float>() : nullptr;
-  const float* px = blocked_points(x);
+  const float* px = blocked_points(x, (float)bound);
   const float* pt = table.data_ptr<float>();
   const float* pc = coef.data_ptr<float>();
   const float* ps = shifts.data_ptr<float>();
@@ -310,10 +314,11 @@ std::vector<torch::Tensor> forward_impl(Kind kind, torch::Tensor x, torch::Tenso
 }
 
 // (grad_table [L, T, F] or undefined, grad_x [N, 3] or undefined). grad_x comes from the forward's
-// jac when given, else from reading the table rows again.
+// jac when given, else from reading the table rows again; it is 0 for the coordinates the forward
+// clamped (outside [-bound, bound], or not finite), as through torch's clamp.
 std::vector<torch::Tensor> backward_impl(Kind kind, torch::Tensor grad_out, torch::Tensor x, torch::Tensor table,
                                          torch::Tensor coef, torch::Tensor shifts, std::optional<torch::Tensor> jac,
-                                         bool need_table, bool need_x) {
+                                         bool need_table, bool need_x, double bound) {
   check(x, table, coef, shifts);
   x = x.contiguous(); table = table.contiguous(); coef = coef.contiguous(); shifts = shifts.contiguous();
   const int64_t N = x.size(0), L = table.size(0), T = table.size(1), F = table.size(2);
@@ -334,7 +339,7 @@ std::vector<torch::Tensor> backward_impl(Kind kind, torch::Tensor grad_out, torc
   const float* pj = use_jac ? jac_c.data_ptr<float>() : nullptr;
   auto gtable = need_table ? pooled_empty({L, T, F}) : torch::Tensor();
   float* pgt = need_table ? gtable.data_ptr<float>() : nullptr;
-  const float* px = (gtable.defined() || !use_jac) ? blocked_points(x) : nullptr;
+  const float* px = (gtable.defined() || !use_jac) ? blocked_points(x, (float)bound) : nullptr;
   const float* pt = table.data_ptr<float>();
   const float* pc = coef.data_ptr<float>();
   const float* ps = shifts.data_ptr<float>();
@@ -357,12 +362,15 @@ std::vector<torch::Tensor> backward_impl(Kind kind, torch::Tensor grad_out, torc
   if (need_x) {
     gx = torch::empty({N, 3}, x.options());
     float* o = gx.data_ptr<float>();
+    const float* xin = x.data_ptr<float>();
+    const float b = (float)bound;
 #pragma omp parallel for num_threads(threads_for(N / 4096 + 1)) schedule(static)
     for (int64_t n = 0; n < N; ++n)
       for (int d = 0; d < 3; ++d) {
         float v = 0.f;
         for (int t = 0; t < nt; ++t) v += gx_parts[((int64_t)t * 3 + d) * N + n];
-        o[3 * n + d] = v;
+        const float xv = xin[3 * n + d];
+        o[3 * n + d] = (xv >= -b && xv <= b) ? v : 0.f;  // false for NaN
       }
   }
   return {gtable, gx};
@@ -371,25 +379,25 @@ std::vector<torch::Tensor> backward_impl(Kind kind, torch::Tensor grad_out, torc
 }  // namespace
 
 std::vector<torch::Tensor> permuto_forward(torch::Tensor x, torch::Tensor table, torch::Tensor coef,
-                                           torch::Tensor shifts, bool need_jac) {
-  return forward_impl(Kind::permuto, x, table, coef, shifts, need_jac);
+                                           torch::Tensor shifts, bool need_jac, double bound) {
+  return forward_impl(Kind::permuto, x, table, coef, shifts, need_jac, bound);
 }
 
 std::vector<torch::Tensor> permuto_backward(torch::Tensor grad_out, torch::Tensor x, torch::Tensor table,
                                             torch::Tensor coef, torch::Tensor shifts, std::optional<torch::Tensor> jac,
-                                            bool need_table, bool need_x) {
-  return backward_impl(Kind::permuto, grad_out, x, table, coef, shifts, jac, need_table, need_x);
+                                            bool need_table, bool need_x, double bound) {
+  return backward_impl(Kind::permuto, grad_out, x, table, coef, shifts, jac, need_table, need_x, bound);
 }
 
 std::vector<torch::Tensor> cubic_forward(torch::Tensor x, torch::Tensor table, torch::Tensor coef,
-                                         torch::Tensor shifts, bool need_jac) {
-  return forward_impl(Kind::cubic, x, table, coef, shifts, need_jac);
+                                         torch::Tensor shifts, bool need_jac, double bound) {
+  return forward_impl(Kind::cubic, x, table, coef, shifts, need_jac, bound);
 }
 
 std::vector<torch::Tensor> cubic_backward(torch::Tensor grad_out, torch::Tensor x, torch::Tensor table,
                                           torch::Tensor coef, torch::Tensor shifts, std::optional<torch::Tensor> jac,
-                                          bool need_table, bool need_x) {
-  return backward_impl(Kind::cubic, grad_out, x, table, coef, shifts, jac, need_table, need_x);
+                                          bool need_table, bool need_x, double bound) {
+  return backward_impl(Kind::cubic, grad_out, x, table, coef, shifts, jac, need_table, need_x, bound);
 }
 
 // Hashed rows and barycentric weights of one level's simplices, from the kernel's own code (the
@@ -402,7 +410,7 @@ std::vector<torch::Tensor> permuto_simplices(torch::Tensor x, torch::Tensor coef
   const int64_t N = x.size(0);
   auto rows = torch::empty({N, 4}, x.options().dtype(torch::kInt64));
   auto w = torch::empty({N, 4}, x.options());
-  const float* xs = blocked_points(x);
+  const float* xs = blocked_points(x, INFINITY);
   PAG_DISPATCH({
     ns::Permuto::Stage s;
     for (int64_t n0 = 0; n0 < N; n0 += BLOCK) {

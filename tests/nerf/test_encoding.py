@@ -227,6 +227,28 @@ def test_half_precision_autocast_and_huge_coordinates_stay_finite(backend):
     assert torch.isfinite(y).all() and torch.isfinite(enc.table.grad).all() and torch.isfinite(x.grad).all()
 
 
+@pytest.mark.parametrize("cls", [PermutoEncoding, CubicHashEncoding])
+def test_fused_clamps_like_the_reference(cls):
+    """The CPU kernel clamps x itself (NaN -> 0, +-inf and beyond the bound -> +-bound): values and both
+    gradients as the reference's torch.nan_to_num + clamp give, position gradients 0 where clamped."""
+    fused_ext()
+    fused, ref = pair(cls)
+    b = fused.bound
+    x = torch.tensor([[float("nan"), 0.3, -0.2], [float("inf"), -float("inf"), 0.1], [2 * b, -0.5, 0.25],
+                      [b, -b, 0.7], [0.05, -3 * b, 0.6], [0.1, 0.2, 0.3]])
+    x1, x2 = x.clone().requires_grad_(), x.clone().requires_grad_()
+    a, r = fused(x1), ref(x2)
+    assert rel_err(a, r) < 1e-5
+    g = torch.randn_like(a)
+    a.backward(g)
+    r.backward(g)
+    assert rel_err(fused.table.grad, ref.table.grad) < 1e-5
+    assert torch.isfinite(x1.grad).all()
+    assert float((x1.grad - x2.grad).abs().max()) <= 1e-5 * float(x2.grad.abs().max())
+    clamped = ~((x >= -b) & (x <= b))
+    assert bool((x1.grad[clamped] == 0).all()) and bool((x1.grad[~clamped] != 0).any())
+
+
 @pytest.mark.parametrize("env", [{"PAG_NO_AVX2": "1"}, {"PAG_NO_AVX512": "1"}], ids=["baseline", "avx2"])
 def test_narrower_x86_builds_match_the_reference(env):
     """The kernels are compiled three times (baseline x86-64, AVX2, AVX-512, the widest the CPU runs
