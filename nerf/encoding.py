@@ -221,14 +221,12 @@ class PermutoEncoding(nn.Module):
             b = self.bound
             ext = self._kernels(x.device)
             fused = ext is not None and self.table.dtype == torch.float32
-            if fused and x.device.type == "cpu":  # the CPU kernel clamps while it packs the points
-                need_jac = JACOBIAN_IN_FORWARD and torch.is_grad_enabled() and x.requires_grad
-                return _FusedEncode.apply(x.float().contiguous(), self.table, self.coef.float(), self.shifts.float(),
-                                          ext, self.kind, need_jac, b)
-            x = torch.nan_to_num(x.float(), nan=0.0, posinf=b, neginf=-b).clamp(-b, b)
+            kernel_clamps = fused and x.device.type == "cpu"  # the CPU kernel clamps while it packs the points
+            x = x.float() if kernel_clamps else torch.nan_to_num(x.float(), nan=0.0, posinf=b, neginf=-b).clamp(-b, b)
             if fused:
+                need_jac = JACOBIAN_IN_FORWARD and torch.is_grad_enabled() and x.requires_grad
                 return _FusedEncode.apply(x.contiguous(), self.table, self.coef.float(), self.shifts.float(), ext,
-                                          self.kind, False)
+                                          self.kind, need_jac, b if kernel_clamps else None)
             ref = permuto_encode_reference if self.kind == "permuto" else cubic_encode_reference
             return ref(x.to(self.table.dtype), self.table, self.scales.to(self.table.dtype), self.shifts.to(self.table.dtype))
 

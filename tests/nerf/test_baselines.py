@@ -15,9 +15,9 @@ from nerf.field import RadianceField, build_field  # noqa: E402
 from nerf.panoptic_fit import PanopticConfig, WindowLabels, fit_panoptic, render_panoptic  # noqa: E402
 from nerf.trainer import NerfModel, fit_window  # noqa: E402
 
-# uniform ray batches (no edge rays): the training PSNR the tests read is then the images' PSNR
-# a few dozen steps: the heavier depth loss of earlier presets forms the geometry within them (the cpu
-# preset's 0.02 is sized for 1200 steps)
+# uniform ray batches (no edge rays): the training PSNR the tests read is then the images' PSNR; and the
+# heavier depth loss of earlier presets, which forms the geometry within a few dozen steps (the cpu preset's
+# 0.02 is sized for 1200 steps)
 FAST = dict(steps=60, rays_per_step=256, occupancy_every=20, refine_poses=False, edge_ray_share=0.0,
             depth_loss_weight=0.1)
 PAN = PanopticConfig(steps=40, frames_per_step=2, rays_per_frame=256, min_segment_px=3)
