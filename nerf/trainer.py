@@ -316,6 +316,7 @@ def fit_window(data: WindowData, cfg: NerfConfig, device: str = "cpu",
     n_samples_total = 0
     n_edge = int(round(cfg.rays_per_step * cfg.edge_ray_share))
     edge_cdf = gradient_cdf(images[train_idx]) if n_edge else None
+    val_cdf = gradient_cdf(images[val_idx]) if len(val_idx) and cfg.val_register_edge_share > 0 else None
     for step in range(cfg.steps):
         frames = train_idx[torch.randint(0, len(train_idx), (cfg.rays_per_step,), generator=g).to(dev)]
         u = torch.randint(0, w, (cfg.rays_per_step,), generator=g).to(dev)
@@ -366,7 +367,8 @@ def fit_window(data: WindowData, cfg: NerfConfig, device: str = "cpu",
         if cfg.skip_empty and step > 0 and step % cfg.occupancy_every == 0:
             grid.update(lambda p: fld.density(scene.normalise(p)), step_m, cfg.occupancy_threshold)
         if len(val_idx) and cfg.refine_poses and step >= cfg.pose_warmup_steps and step % cfg.val_register_every == 0:
-            register(model, poses, val_opt, c2w0, k, images, val_idx, cfg.val_register_steps, g)
+            register(model, poses, val_opt, c2w0, k, images, val_idx, cfg.val_register_steps, g,
+                     edge_cdf=val_cdf, edge_share=cfg.val_register_edge_share)
         if step % 50 == 0 or step == cfg.steps - 1:
             rec = {"step": step, "loss": float(loss.detach()), "psnr": -10 * math.log10(max(float(loss_c.detach()), 1e-10)),
                    "occupied": grid.occupied_share(), "samples_per_ray": len(s) / cfg.rays_per_step}
@@ -374,7 +376,8 @@ def fit_window(data: WindowData, cfg: NerfConfig, device: str = "cpu",
             if progress:
                 progress(step + 1, cfg.steps, {"psnr": rec["psnr"]})
     if len(val_idx) and cfg.refine_poses:
-        register(model, poses, val_opt, c2w0, k, images, val_idx, cfg.val_register_steps * 6, g)
+        register(model, poses, val_opt, c2w0, k, images, val_idx, cfg.val_register_final_steps, g,
+                 anneal=cfg.val_register_anneal, edge_cdf=val_cdf, edge_share=cfg.val_register_edge_share)
     fit_s = time.perf_counter() - t0
     with torch.no_grad():
         final = poses.apply(c2w0, torch.arange(n, device=dev)) if cfg.refine_poses else c2w0
@@ -414,8 +417,11 @@ def visible_samples(model: NerfModel, o: Tensor, d: Tensor, s: Samples, min_tran
 
 
 def register(model: NerfModel, poses: PoseCorrection, opt: torch.optim.Optimizer, c2w0: Tensor, k: Tensor,
-             images: Tensor, val_idx: Tensor, steps: int, g: torch.Generator, rays: int = 1024) -> None:
-    """Optimise only the validation poses against the frozen model (colour loss)."""
+             images: Tensor, val_idx: Tensor, steps: int, g: torch.Generator, rays: int = 1024,
+             anneal: float = 1.0, edge_cdf: Tensor | None = None, edge_share: float = 0.0) -> None:
+    """Optimise only the validation poses against the frozen model (colour loss). The learning rates fall
+    exponentially to `anneal` times their value over the steps (and are restored after); an `edge_share` of
+    the rays is drawn from `edge_cdf` (gradient_cdf of images[val_idx]), the rest uniformly."""
     fld = model.field
     req = [p.requires_grad for p in fld.parameters()]
     for p in fld.parameters():
@@ -423,11 +429,18 @@ def register(model: NerfModel, poses: PoseCorrection, opt: torch.optim.Optimizer
     h, w = images.shape[1:3]
     dev = images.device
     edges = model.edges(dev)
+    lr0 = [grp["lr"] for grp in opt.param_groups]
+    n_edge = int(round(rays * edge_share)) if edge_cdf is not None else 0
     try:
-        for _ in range(steps):
+        for i in range(steps):
+            for grp, lr in zip(opt.param_groups, lr0):
+                grp["lr"] = lr * anneal ** (i / max(steps - 1, 1))
             frames = val_idx[torch.randint(0, len(val_idx), (rays,), generator=g).to(dev)]
             u = torch.randint(0, w, (rays,), generator=g).to(dev)
             v = torch.randint(0, h, (rays,), generator=g).to(dev)
+            if n_edge:
+                pick = draw_from_cdf(edge_cdf, n_edge, g)
+                frames[:n_edge], v[:n_edge], u[:n_edge] = val_idx[pick // (h * w)], (pick // w) % h, pick % w
             o, d = _rays_for(model, poses, c2w0, k, frames, u.float() + 0.5, v.float() + 0.5, None)
             s = march(o, d, edges, model.occupied_fn(), jitter=True, max_per_ray=model.cfg.max_samples_per_ray)
             sigma, col, _, _ = model.shade(o, d, s)
@@ -441,6 +454,8 @@ def register(model: NerfModel, poses: PoseCorrection, opt: torch.optim.Optimizer
     finally:
         for p, r in zip(fld.parameters(), req):
             p.requires_grad_(r)
+        for grp, lr in zip(opt.param_groups, lr0):
+            grp["lr"] = lr
 
 
 @torch.no_grad()

@@ -113,3 +113,34 @@ def test_edge_ray_share_fits(window):
     cfg = replace(preset("cpu"), steps=30, rays_per_step=256, edge_ray_share=0.5, refine_poses=False)
     res = fit_window(window, cfg, render_val=False)
     assert np.isfinite(res.train_psnr) and res.history[-1]["samples_per_ray"] > 0
+
+
+def test_registration_anneals_its_rate_draws_rays_on_texture_and_restores_the_rate(window, monkeypatch):
+    import nerf.trainer as trainer
+    from nerf.poses import PoseCorrection
+
+    model = fit_window(window, preset("cpu", **{**FAST, "steps": 20}, refine_poses=False), render_val=False).model
+    images = torch.from_numpy(window.images).clone()
+    val = torch.from_numpy(np.flatnonzero(~window.is_train))
+    images[val] = 40
+    images[val[0], :, 20:] = 220             # the only texture: a vertical edge in the first validation frame
+    drawn, rates = [], []
+    real = trainer._rays_for
+
+    def spy(model_, poses_, c2w0, k, frames, u, v, attach):
+        drawn.append((frames.clone(), u.clone()))
+        rates.append(opt.param_groups[0]["lr"])
+        return real(model_, poses_, c2w0, k, frames, u, v, attach)
+
+    monkeypatch.setattr(trainer, "_rays_for", spy)
+    poses = PoseCorrection(len(images), model.scene.scale_m)
+    opt = torch.optim.Adam(poses.parameters(), lr=1e-3)
+    k = torch.tensor(window.intrinsics, dtype=torch.float32)
+    trainer.register(model, poses, opt, model.poses_c2w.clone(), k, images, val, 5, torch.Generator().manual_seed(0),
+                     rays=200, anneal=0.1, edge_cdf=trainer.gradient_cdf(images[val]), edge_share=0.5)
+    assert np.allclose(rates, [1e-3 * 0.1 ** (i / 4) for i in range(5)])
+    assert opt.param_groups[0]["lr"] == 1e-3                          # restored for the next registration
+    frames, u = torch.cat([f[:100] for f, _ in drawn]), torch.cat([u_[:100] for _, u_ in drawn]) - 0.5
+    assert ((frames == val[0]) & ((u == 19) | (u == 20))).float().mean() > 0.8
+    frames = torch.cat([f[100:] for f, _ in drawn])                    # the other half: every validation frame
+    assert set(frames.tolist()) == set(val.tolist())
