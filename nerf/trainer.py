@@ -268,6 +268,20 @@ def draw_from_cdf(cdf: Tensor, n: int, g: torch.Generator) -> Tensor:
     return torch.searchsorted(cdf, u).clamp_max(cdf.shape[0] - 1)
 
 
+def draw_pixels(idx: Tensor, n: int, h: int, w: int, g: torch.Generator, cdf: Tensor | None = None,
+                n_edge: int = 0) -> tuple[Tensor, Tensor, Tensor]:
+    """n pixels (frames, u, v) of the frames `idx` of [N, H, W] images: the first n_edge drawn from `cdf`
+    (gradient_cdf of images[idx]), the rest uniformly."""
+    dev = idx.device
+    frames = idx[torch.randint(0, len(idx), (n,), generator=g).to(dev)]
+    u = torch.randint(0, w, (n,), generator=g).to(dev)
+    v = torch.randint(0, h, (n,), generator=g).to(dev)
+    if n_edge and cdf is not None:
+        pick = draw_from_cdf(cdf, n_edge, g)
+        frames[:n_edge], v[:n_edge], u[:n_edge] = idx[pick // (h * w)], (pick // w) % h, pick % w
+    return frames, u, v
+
+
 def _rays_for(model: NerfModel, poses: PoseCorrection, c2w0: Tensor, k: Tensor, frames: Tensor, u: Tensor, v: Tensor,
               attach: Tensor | None) -> tuple[Tensor, Tensor]:
     """Rays of pixels (u, v) of `frames` through the corrected poses; rows with attach = False detached."""
@@ -318,12 +332,7 @@ def fit_window(data: WindowData, cfg: NerfConfig, device: str = "cpu",
     edge_cdf = gradient_cdf(images[train_idx]) if n_edge else None
     val_cdf = gradient_cdf(images[val_idx]) if len(val_idx) and cfg.val_register_edge_share > 0 else None
     for step in range(cfg.steps):
-        frames = train_idx[torch.randint(0, len(train_idx), (cfg.rays_per_step,), generator=g).to(dev)]
-        u = torch.randint(0, w, (cfg.rays_per_step,), generator=g).to(dev)
-        v = torch.randint(0, h, (cfg.rays_per_step,), generator=g).to(dev)
-        if n_edge:
-            pick = draw_from_cdf(edge_cdf, n_edge, g)
-            frames[:n_edge], v[:n_edge], u[:n_edge] = train_idx[pick // (h * w)], (pick // w) % h, pick % w
+        frames, u, v = draw_pixels(train_idx, cfg.rays_per_step, h, w, g, edge_cdf, n_edge)
         # half the rays move the poses (colour loss only); the other half carry the depth loss, detached
         pose_rays = torch.arange(cfg.rays_per_step, device=dev) % 2 == 0
         pose_on = cfg.refine_poses and step >= cfg.pose_warmup_steps
@@ -435,12 +444,7 @@ def register(model: NerfModel, poses: PoseCorrection, opt: torch.optim.Optimizer
         for i in range(steps):
             for grp, lr in zip(opt.param_groups, lr0):
                 grp["lr"] = lr * anneal ** (i / max(steps - 1, 1))
-            frames = val_idx[torch.randint(0, len(val_idx), (rays,), generator=g).to(dev)]
-            u = torch.randint(0, w, (rays,), generator=g).to(dev)
-            v = torch.randint(0, h, (rays,), generator=g).to(dev)
-            if n_edge:
-                pick = draw_from_cdf(edge_cdf, n_edge, g)
-                frames[:n_edge], v[:n_edge], u[:n_edge] = val_idx[pick // (h * w)], (pick // w) % h, pick % w
+            frames, u, v = draw_pixels(val_idx, rays, h, w, g, edge_cdf, n_edge)
             o, d = _rays_for(model, poses, c2w0, k, frames, u.float() + 0.5, v.float() + 0.5, None)
             s = march(o, d, edges, model.occupied_fn(), jitter=True, max_per_ray=model.cfg.max_samples_per_ray)
             sigma, col, _, _ = model.shade(o, d, s)
