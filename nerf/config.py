@@ -65,7 +65,7 @@ class NerfConfig:
     val_register_every: int = 100
     """register the validation poses to the frozen model every this many steps."""
     val_register_steps: int = 8
-    """steps of each validation-pose registration."""
+    """steps of each periodic validation-pose registration (the final one: val_register_final_steps)."""
     val_register_final_steps: int = 96
     """steps of the validation-pose registration after the last training step (the validation PSNR is measured
     at the poses it ends with)."""
