@@ -31,10 +31,20 @@ def median(xs: list[float]) -> float:
 
 
 def write_parquet(df: pd.DataFrame, path: Path) -> None:
+    """Write a bench table atomically, with the commit that measured it in the file's metadata
+    (`pag.commit`, read by `pag bench results`)."""
     import io
 
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    from pipeline.provenance import code_version
+
+    table = pa.Table.from_pandas(df, preserve_index=False)
+    meta = dict(table.schema.metadata or {})
+    meta[b"pag.commit"] = code_version().encode()
     buf = io.BytesIO()
-    df.to_parquet(buf, index=False)
+    pq.write_table(table.replace_schema_metadata(meta), buf)
     atomic_write_bytes(path, buf.getvalue())
 
 

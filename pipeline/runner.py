@@ -18,7 +18,7 @@ import pandas as pd
 import yaml
 
 from pipeline import config as cfgmod
-from pipeline import dag, io
+from pipeline import dag, io, provenance
 from pipeline.catalog import DATASETS, dataset
 from pipeline.stage import StageContext
 
@@ -208,7 +208,8 @@ class Runner:
                 if not isinstance(outputs[name], pd.DataFrame):
                     raise PipelineError(f"stage {s.name!r} returned {type(outputs[name]).__name__} for {name!r}")
                 io.write_table(outputs[name], self._input_path(name), dataset(name).schema,
-                               metadata={"pag.stage": s.name, "pag.seq": self.seq})
+                               metadata={"pag.stage": s.name, "pag.seq": self.seq,
+                                         "pag.commit": provenance.code_version()})
             for name, path in staging.items():
                 io.swap_dir(path, self._input_path(name))
         except Exception:
@@ -219,7 +220,7 @@ class Runner:
         record = {"stage": s.name, "key": key, "seconds": round(seconds, 3), "inputs": input_hashes,
                   "outputs": {o: self.hashes.tree_hash(self._input_path(o)) for o in s.outputs},
                   "config": cfgmod.to_dict(self.config[s.name]), "summary": ctx.summary,
-                  "finished_unix": time.time()}
+                  "finished_unix": time.time(), "code_version": provenance.code_version()}
         io.atomic_write_bytes(self.manifest_path(s), json.dumps(record, indent=1, default=str).encode())
         self.hashes.save()
         brief = ", ".join(f"{k}={v}" for k, v in ctx.summary.items() if k != "notes")

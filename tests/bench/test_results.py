@@ -1,0 +1,47 @@
+"""`pag bench results`: the README's results block is generated from tables on disk, with their commits."""
+import json
+
+import pandas as pd
+import pytest
+
+from bench import results
+from bench._common import write_parquet
+
+
+def _row(tmp_path, commit="abc123"):
+    proc = tmp_path / "processed" / "synth_x"
+    proc.mkdir(parents=True)
+    pd.DataFrame({"scope": ["row", "windows_mean", "row"], "metric": ["pq", "psnr", "count_pred"],
+                  "value": [0.91, 27.5, 12.0]}).to_parquet(proc / "evaluation.parquet")
+    man = tmp_path / "interim" / "synth_x" / "_manifest"
+    man.mkdir(parents=True)
+    (man / "evaluate.json").write_text(json.dumps({"code_version": commit}))
+
+
+def test_block_shows_measured_values_and_their_commits(tmp_path):
+    _row(tmp_path)
+    bench = tmp_path / "bench"
+    write_parquet(pd.DataFrame({"workers": [1, 2], "windows": [4, 4], "steps": [10, 10], "wall_s": [9.0, 5.0],
+                                "speedup_vs_1": [1.0, 1.8]}), bench / "dask.parquet")
+    text = results.build(tmp_path, bench, "synth_x")
+    assert "commit `abc123`" in text
+    assert "| PQ, fused row (NeRF) | 0.910 |" in text
+    assert "| val PSNR, mean over windows (dB) | 27.50 |" in text
+    assert "| fruits counted | 12 |" in text
+    from pipeline.provenance import code_version
+    assert f"`pag bench dask`), commit `{code_version()}`" in text
+    assert "| 2 | 4 | 10 | 5 | 1.8 |" in text
+    assert "`pag bench encoding`" in text.split("Not measured")[1]
+
+
+def test_replace_block_keeps_the_rest_of_the_readme(tmp_path):
+    readme = f"# T\nintro\n{results.START}\nold numbers\n{results.END}\nafter\n"
+    out = results.replace_block(readme, "new table")
+    assert out == f"# T\nintro\n{results.START}\nnew table\n{results.END}\nafter\n"
+    with pytest.raises(ValueError, match="no results block"):
+        results.replace_block("# no markers\n", "x")
+
+
+def test_missing_evaluation_is_named_not_invented(tmp_path):
+    text = results.build(tmp_path, tmp_path / "bench", "synth_none")
+    assert "No evaluation of `synth_none` on disk" in text
