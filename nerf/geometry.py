@@ -29,7 +29,7 @@ def rotation_angle_deg(r_a: np.ndarray, r_b: np.ndarray) -> np.ndarray:
 
 def align_similarity(src: np.ndarray, dst: np.ndarray, src_rot: np.ndarray | None = None,
                      dst_rot: np.ndarray | None = None, *, with_scale: bool = True, position_weight: float = 1.0,
-                     orientation_weight: float = 0.0) -> tuple[float, np.ndarray, np.ndarray]:
+                     orientation_weight: float = 1.0) -> tuple[float, np.ndarray, np.ndarray]:
     """Similarity (s, R, t) with dst_i ~ s R src_i + t and, where rotations are given, dst_rot_i ~ R src_rot_i.
     Points src, dst [N, 3]; rotations [N, 3, 3]. The one aligner of the project (trajectory errors, COLMAP
     poses onto odometry, windows onto each other, depth-derived tracks onto odometry).
@@ -41,7 +41,8 @@ def align_similarity(src: np.ndarray, dst: np.ndarray, src_rot: np.ndarray | Non
     rotation about that line free; the orientation term pins it (orientation_weight alone gives the chordal
     mean rotation). With M = U D V^T:
         R = U diag(1, 1, det(U V^T)) V^T,  s = sum_i (dst_i - mu_d) . R (src_i - mu_s) / sum_i |src_i - mu_s|^2
-    (s = 1 without with_scale), t = mean_i (dst_i - s R src_i). Example: src = dst gives s = 1, R = I, t = 0.
+    (s = 1 without with_scale), t = mean_i (dst_i - s R src_i). Rotations count only where both are given.
+    Example: src = dst gives s = 1, R = I, t = 0.
 
     Raises ValueError for mismatched shapes, fewer than 2 points, and (with_scale) coincident points or a
     non-positive scale: the scale is undetermined then."""

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from nerf.geometry import pose_matrix, pose_txyzq, rotation_angle_deg
+from nerf.geometry import align_similarity, apply_similarity, pose_matrix, pose_txyzq, rotation_angle_deg
 from pipeline.stage import StageContext
 from schemas import empty
 
@@ -60,45 +60,6 @@ class Config:
                 raise ValueError(f"colmap_poses.{name} must be > 0, got {getattr(self, name)}")
         if self.orientation_weight < 0 or self.threads < 0:
             raise ValueError("colmap_poses.orientation_weight and colmap_poses.threads must be >= 0")
-
-
-# -- maths ----------------------------------------------------------------------------------------
-def align_similarity(src: np.ndarray, dst: np.ndarray, src_rot: np.ndarray | None = None,
-                     dst_rot: np.ndarray | None = None, orientation_weight: float = 1.0) -> tuple[float, np.ndarray, np.ndarray]:
-    """Similarity (s, R, t) with dst_i ~ s R src_i + t and dst_rot_i ~ R src_rot_i.
-
-    Umeyama (1991) maximises tr(R^T H), H = mean_i (dst_i - mu_d)(src_i - mu_s)^T. Camera centres along a
-    straight row are nearly collinear, which leaves the rotation about that line undetermined, so the
-    orientations add w * mean_i dst_rot_i src_rot_i^T (minimising sum |dst_rot_i - R src_rot_i|_F^2) to
-    H / (sigma_s sigma_d) (sigma = RMS distance to the centroid, making both terms unitless):
-        M = U D V^T,  R = U diag(1, 1, det(U V^T)) V^T,  s = sum (dst_i - mu_d) . R (src_i - mu_s) / sum |src_i - mu_s|^2
-    With w = 0 this is Umeyama's solution. src, dst [N, 3]; rotations [N, 3, 3]. Example: src = dst gives
-    s = 1, R = I, t = 0."""
-    src, dst = np.asarray(src, np.float64), np.asarray(dst, np.float64)
-    if src.shape != dst.shape or src.ndim != 2 or src.shape[1] != 3 or len(src) < 2:
-        raise ValueError(f"align_similarity needs two [N >= 2, 3] point sets, got {src.shape} and {dst.shape}")
-    mu_s, mu_d = src.mean(0), dst.mean(0)
-    xs, xd = src - mu_s, dst - mu_d
-    sig_s, sig_d = np.sqrt((xs ** 2).sum(1).mean()), np.sqrt((xd ** 2).sum(1).mean())
-    if not (sig_s > 0 and sig_d > 0):
-        raise ValueError("align_similarity: the camera centres coincide, so the scale is undetermined")
-    m = xd.T @ xs / len(src) / (sig_s * sig_d)
-    if src_rot is not None and dst_rot is not None and orientation_weight > 0:
-        m = m + orientation_weight * np.einsum("nij,nkj->ik", dst_rot, src_rot) / len(src_rot)
-    u, _, vt = np.linalg.svd(m)
-    r = u @ np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt)) or 1.0]) @ vt
-    s = float((xd * (xs @ r.T)).sum() / (xs ** 2).sum())
-    if not s > 0:
-        raise ValueError(f"align_similarity: non-positive scale {s} (the trajectories do not correspond)")
-    return s, r, mu_d - s * r @ mu_s
-
-
-def apply_similarity(s: float, r: np.ndarray, t: np.ndarray, c2w: np.ndarray) -> np.ndarray:
-    """Camera-to-world poses [N, 4, 4] of the source frame -> the target frame (rotation R, centre s R c + t)."""
-    out = np.array(c2w, np.float64, copy=True)
-    out[:, :3, :3] = r @ c2w[:, :3, :3]
-    out[:, :3, 3] = s * c2w[:, :3, 3] @ r.T + t
-    return out
 
 
 # -- COLMAP ---------------------------------------------------------------------------------------
@@ -198,7 +159,7 @@ def _fit(col: np.ndarray, odo: np.ndarray, sel: np.ndarray, cfg: Config):
     """Similarity fitted on the frames `sel` -> (s, aligned poses [M, 4, 4], position residuals [M] m,
     orientation residuals [M] deg, inliers [M] bool)."""
     s, r, t = align_similarity(col[sel, :3, 3], odo[sel, :3, 3], col[sel, :3, :3], odo[sel, :3, :3],
-                               cfg.orientation_weight)
+                               orientation_weight=cfg.orientation_weight)
     aligned = apply_similarity(s, r, t, col)
     res_t = np.linalg.norm(aligned[:, :3, 3] - odo[:, :3, 3], axis=1)
     res_r = rotation_angle_deg(aligned[:, :3, :3], odo[:, :3, :3])

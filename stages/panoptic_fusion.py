@@ -12,7 +12,7 @@ import pandas as pd
 from scipy.optimize import linear_sum_assignment
 
 import schemas
-from nerf.geometry import pose_matrix, pose_txyzq
+from nerf.geometry import align_similarity, pose_matrix, pose_txyzq, similarity_matrix
 from nerf.surfaces import fit_sphere, plausible_fit, principal_extents, robust_centre, unproject
 from pipeline.classes import THING_IDS, VOID
 from pipeline.images import ImageError, read_label, write_png
@@ -88,13 +88,9 @@ def rigid_between(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
     """Rigid transform T [4, 4] with T @ src[i] ~ dst[i] for camera poses src, dst [N, 4, 4]: the rotation
     is the chordal mean of dst_R src_R^T (orientations pin the roll about the row a straight, nearly
     collinear track of positions leaves free), the translation the mean of dst_t - R src_t."""
-    m = np.einsum("nij,nkj->ik", dst[:, :3, :3], src[:, :3, :3])          # sum of dst_R @ src_R^T
-    u, _, vt = np.linalg.svd(m)
-    r = u @ np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))]) @ vt
-    out = np.eye(4)
-    out[:3, :3] = r
-    out[:3, 3] = (dst[:, :3, 3] - src[:, :3, 3] @ r.T).mean(0)
-    return out
+    s, r, t = align_similarity(src[:, :3, 3], dst[:, :3, 3], src[:, :3, :3], dst[:, :3, :3], with_scale=False,
+                               position_weight=0.0, orientation_weight=1.0)
+    return similarity_matrix(s, r, t)
 
 
 def window_alignments(window_poses: pd.DataFrame) -> dict[int, np.ndarray]:

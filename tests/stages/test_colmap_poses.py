@@ -8,7 +8,7 @@ import pandas as pd
 import pytest
 from scipy.spatial.transform import Rotation
 
-from nerf.geometry import pose_matrix, rotation_angle_deg
+from nerf.geometry import align_similarity, apply_similarity, pose_matrix, rotation_angle_deg
 from pipeline import cli
 from pipeline.stage import StageContext
 from schemas import validate
@@ -28,7 +28,7 @@ def row_poses(n=8, seed=0, spacing_m=0.1) -> np.ndarray:
 
 
 def similarity(c2w, s, r, t):
-    return cp.apply_similarity(s, r, t, c2w)
+    return apply_similarity(s, r, t, c2w)
 
 
 def test_alignment_recovers_a_similarity_from_collinear_cameras_thanks_to_orientations():
@@ -37,13 +37,13 @@ def test_alignment_recovers_a_similarity_from_collinear_cameras_thanks_to_orient
     # the "COLMAP" frame: odo = s R col + t  <=>  col = R^T (odo - t) / s
     s, t = 0.02, np.array([0.3, -1.0, 2.0])
     col = similarity(odo, 1 / s, r.T, -r.T @ t / s)
-    s_hat, r_hat, t_hat = cp.align_similarity(col[:, :3, 3], odo[:, :3, 3], col[:, :3, :3], odo[:, :3, :3])
+    s_hat, r_hat, t_hat = align_similarity(col[:, :3, 3], odo[:, :3, 3], col[:, :3, :3], odo[:, :3, :3])
     assert s_hat == pytest.approx(s, rel=1e-9)
     assert np.allclose(r_hat, r, atol=1e-9) and np.allclose(t_hat, t, atol=1e-9)
     back = similarity(col, s_hat, r_hat, t_hat)
     assert np.allclose(back, odo, atol=1e-9)
     # Umeyama on the centres alone (weight 0): the roll about the (almost) straight row is a guess
-    s0, r0, t0 = cp.align_similarity(col[:, :3, 3], odo[:, :3, 3], orientation_weight=0.0)
+    s0, r0, t0 = align_similarity(col[:, :3, 3], odo[:, :3, 3], orientation_weight=0.0)
     assert np.allclose(similarity(col, s0, r0, t0)[:, :3, 3], odo[:, :3, 3], atol=1e-3)
     assert rotation_angle_deg(r0, r) > 1.0
 
@@ -51,9 +51,9 @@ def test_alignment_recovers_a_similarity_from_collinear_cameras_thanks_to_orient
 def test_alignment_rejects_degenerate_input():
     p = np.zeros((4, 3))
     with pytest.raises(ValueError, match="coincide"):
-        cp.align_similarity(p, p + 1)
+        align_similarity(p, p + 1)
     with pytest.raises(ValueError, match="N >= 2"):
-        cp.align_similarity(np.zeros((1, 3)), np.zeros((1, 3)))
+        align_similarity(np.zeros((1, 3)), np.zeros((1, 3)))
 
 
 def test_window_alignment_falls_back_per_frame_and_per_window():
