@@ -9,7 +9,6 @@ import pytest
 from pipeline import codehash, dag, runner
 from pipeline.runner import Runner
 
-PACKAGES = ("nerf", "pipeline", "stages", "schemas", "sources", "synthetic")
 
 
 @pytest.fixture(scope="module")
@@ -20,7 +19,8 @@ def stages():
 @pytest.fixture
 def tree(tmp_path, monkeypatch):
     """A copy of the project's packages; the runner resolves modules there, so edits leave the repo alone."""
-    for pkg in PACKAGES:
+    for init in runner.REPO_ROOT.glob("*/__init__.py"):
+        pkg = init.parent.name
         shutil.copytree(runner.REPO_ROOT / pkg, tmp_path / pkg, ignore=shutil.ignore_patterns("__pycache__"))
     monkeypatch.setattr(runner, "REPO_ROOT", tmp_path)
     return tmp_path
