@@ -22,32 +22,41 @@ POSE_COLS = ["tx", "ty", "tz", "qx", "qy", "qz", "qw"]
 @dataclass(frozen=True)
 class Config:
     enabled: bool = False
-    """run COLMAP (off: `pag all` leaves the stage out; run alone it writes an empty table)."""
+    """run COLMAP (off: `pag all` leaves the stage out; run alone it writes an empty table). Turn it on to
+    start nerf_fit from COLMAP poses (nerf_fit.pose_source=colmap) or to compare them with the odometry."""
     min_registered: int = 3
-    """frames COLMAP must register in a window before its poses are used (else the window keeps odometry)."""
+    """frames, >= 2, COLMAP must register in a window (and keep after the residual checks) before its poses are
+    used; else the window keeps odometry. Raise it to trust only well-registered windows."""
     overlap: int = 10
-    """sequential matching: each frame is matched with this many following frames."""
+    """frames, >= 1: sequential matching pairs each frame with this many following frames. Raise it when
+    consecutive frames overlap little (fast motion), at a matching cost growing linearly with it."""
     max_features: int = 8192
-    """SIFT features per image at most."""
+    """features, >= 1: SIFT features extracted per image at most. Lower it on large images to save time."""
     sift_peak_threshold: float = 0.004
-    """SIFT detection threshold (COLMAP's default 0.0067 finds too few features on small images)."""
+    """> 0: SIFT detection threshold. Lower finds more (weaker) features; COLMAP's default 0.0067 finds too few
+    on small, low-contrast images of foliage."""
     min_inliers: int = 30
-    """verified matches needed for the initial image pair and for registering a further image."""
+    """matches, >= 1: verified matches needed for the initial image pair and for registering a further
+    image. Lower it for small images (fewer features), raise it when frames are registered wrongly."""
     min_tri_angle_deg: float = 4.0
-    """triangulation angle of the initial pair (COLMAP's 16 deg is more than a short window along a row offers)."""
+    """degrees, > 0: triangulation angle the initial pair needs. COLMAP's 16 deg is more than a short window
+    along a row offers; raise it with wide-baseline windows."""
     orientation_weight: float = 1.0
-    """weight of the camera orientations in the alignment (0 = plain Umeyama on the camera centres, whose
-    rotation about a straight trajectory is undetermined)."""
+    """>= 0: weight of the camera orientations against the centres in the alignment to odometry
+    (nerf.geometry.align_similarity; 0 = plain Umeyama on the centres, whose rotation about a straight
+    trajectory is undetermined). Keep it > 0 for straight tracks along a row."""
     max_residual_m: float = 0.05
-    """a registered frame whose aligned position is farther than this from its odometry position falls back to
-    odometry and takes no part in the alignment (pairs of frames are tried as hypotheses, see robust_similarity)."""
+    """metres, > 0. A registered frame whose aligned position is farther than this from its odometry position
+    falls back to odometry and takes no part in the alignment (pairs of frames are tried as hypotheses, see
+    robust_similarity). About the odometry's drift over a window; lower it to reject more registrations."""
     max_rot_residual_deg: float = 5.0
-    """likewise for the angle between its aligned and its odometry orientation (a short, narrow-baseline
-    reconstruction can be consistently tilted; odometry orientations are good to a few degrees per window)."""
+    """degrees, > 0: likewise for the angle between a frame's aligned and its odometry orientation (a short,
+    narrow-baseline reconstruction can be consistently tilted). About the odometry's orientation error over a
+    window."""
     threads: int = 0
-    """COLMAP threads (0 = all cores)."""
+    """COLMAP threads, >= 0 (0 = all cores). Set it when other work shares the machine."""
     seed: int = 0
-    """COLMAP's random seed."""
+    """COLMAP's random seed (RANSAC and the mapper); change it to check how much the poses depend on it."""
 
     def __post_init__(self) -> None:
         if self.min_registered < 2:
