@@ -176,17 +176,25 @@ def test_nerf_fit_hands_its_windows_the_colmap_poses(colmap_row, tmp_path, monke
 
 def test_compare_bench_runs_colmap_itself_when_the_table_lacks_the_window(colmap_row, tmp_path):
     from bench.compare import colmap_window
-    interim = colmap_row / "interim" / "synth_colmap"
+    seq = "synth_colmap"
+    interim = colmap_row / "interim" / seq
     frames, windows = pd.read_parquet(interim / "frames.parquet"), pd.read_parquet(interim / "windows.parquet")
     w = windows[windows.window_id == 1].merge(frames, on="frame_id")
     kept = w.iloc[::2].reset_index(drop=True)
-    from_table, note = colmap_window(interim, w, kept, 1, colmap_row)
+    from_table, note = colmap_window(seq, colmap_row, windows, kept, 1)
     assert note == "" and (from_table["pose_source"] == "colmap").any()
-    bare = tmp_path / "interim"  # no colmap_poses.parquet here: the bench reconstructs window 1 itself
-    bare.mkdir()
-    own, note = colmap_window(bare, w, kept, 1, colmap_row)
+    # a data/ whose colmap_poses table lacks window 1: the bench runs the stage on that window itself
+    bare = tmp_path / "data"
+    for rel in (f"raw/{seq}", f"interim/{seq}/images", f"interim/{seq}/frames.parquet", f"interim/{seq}/windows.parquet"):
+        (bare / rel).parent.mkdir(parents=True, exist_ok=True)
+        (bare / rel).symlink_to(colmap_row / rel)
+    table = pd.read_parquet(interim / "colmap_poses.parquet")
+    table[table.window_id != 1].to_parquet(bare / "interim" / seq / "colmap_poses.parquet")
+    own, note = colmap_window(seq, bare, windows, kept, 1)
     assert note.startswith("COLMAP run by the bench") and len(own) == len(kept)
     assert (own["frame_id"].to_numpy() == kept["frame_id"].to_numpy()).all()
+    assert not (bare / "interim" / seq / "colmap_poses.parquet").is_symlink()
+    assert len(pd.read_parquet(bare / "interim" / seq / "colmap_poses.parquet")) == len(table[table.window_id != 1])
     reg = (own["pose_source"] == "colmap").to_numpy() & (from_table["pose_source"] == "colmap").to_numpy()
     assert reg.sum() >= len(kept) // 2
     # the same images and settings (but all cores here): both land within a centimetre of each other
