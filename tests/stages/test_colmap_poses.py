@@ -13,6 +13,7 @@ from pipeline import cli
 from pipeline.stage import StageContext
 from schemas import validate
 from stages import colmap_poses as cp
+from rowmap.window_data import initial_poses
 from stages import nerf_fit
 
 
@@ -93,16 +94,16 @@ def test_bad_config_is_a_clear_error():
 
 def test_nerf_fit_initial_poses_from_colmap_and_clear_errors():
     w = pd.DataFrame({"frame_id": [3, 4], **{c: [0.0, 1.0] for c in cp.POSE_COLS}})
-    same = nerf_fit.initial_poses(w, 0, None, "odometry")
+    same = initial_poses(w, 0, None, "odometry")
     assert same["pose_source"].tolist() == ["odometry"] * 2
     with pytest.raises(ValueError, match="colmap_poses.parquet is missing; run `pag colmap_poses"):
-        nerf_fit.initial_poses(w, 0, None, "colmap")
+        initial_poses(w, 0, None, "colmap")
     col = pd.DataFrame({"window_id": [0, 0], "frame_id": [4, 3], "source": ["colmap", "odometry"],
                         **{c: [5.0, 1.0] for c in cp.POSE_COLS}})
-    got = nerf_fit.initial_poses(w, 0, col, "colmap")
+    got = initial_poses(w, 0, col, "colmap")
     assert got["tx"].tolist() == [1.0, 5.0] and got["pose_source"].tolist() == ["odometry", "colmap"]
     with pytest.raises(ValueError, match="no pose for window 1"):
-        nerf_fit.initial_poses(w, 1, col, "colmap")
+        initial_poses(w, 1, col, "colmap")
 
 
 # -- COLMAP on a synthetic row ----------------------------------------------------------------------
