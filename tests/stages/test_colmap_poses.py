@@ -11,9 +11,9 @@ from scipy.spatial.transform import Rotation
 from nerf.geometry import align_similarity, apply_similarity, pose_matrix, rotation_angle_deg
 from pipeline import cli
 from pipeline.stage import StageContext
+from rowmap.window_data import initial_poses
 from schemas import validate
 from stages import colmap_poses as cp
-from rowmap.window_data import initial_poses
 from stages import nerf_fit
 
 
