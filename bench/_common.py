@@ -76,15 +76,64 @@ def kept_frames(is_train: np.ndarray, n_val: int | None) -> np.ndarray:
     return np.sort(np.concatenate([np.flatnonzero(is_train), val]))
 
 
-def window_rows(data_root: Path, seq: str, window: int) -> tuple[pd.DataFrame, pd.DataFrame]:
-    """A window's rows of windows.parquet joined with frames.parquet (in frame order), and the sequence's
-    detections_filtered table; a clear error if the sequence has no such window."""
+def read(data_root: Path, seq: str, name: str) -> pd.DataFrame:
+    """Table `name` of sequence `seq` from the catalog (validated against its schema); a clear error naming the
+    stage to run when it does not exist."""
+    from pipeline import dag
+    from pipeline.catalog import dataset
     from pipeline.io import read_table
 
-    interim = data_root / "interim" / seq
-    frames = read_table(interim / "frames.parquet", "frames")
-    windows = read_table(interim / "windows.parquet", "windows")
+    ds = dataset(name)
+    path = ds.path(data_root, seq)
+    if not path.is_file():
+        producer = dag.producers(dag.build()).get(name, "")
+        how = f"run `pag {producer} --seq {seq}` (or `pag all --seq {seq}`) first" if producer else "see data/README.md"
+        raise FileNotFoundError(f"{name} table of {seq!r} not found at {path}; {how}")
+    return read_table(path, ds.schema)
+
+
+def window_rows(data_root: Path, seq: str, window: int) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """A window's rows of the windows table joined with the frames table (in frame order), and the sequence's
+    detections_filtered table; a clear error if the sequence has no such window."""
+    frames = read(data_root, seq, "frames")
+    windows = read(data_root, seq, "windows")
     w = windows[windows.window_id == window].merge(frames, on="frame_id").sort_values("frame_id")
     if w.empty:
         raise ValueError(f"window {window} not in {seq}; windows: {sorted(windows.window_id.unique())}")
-    return w.reset_index(drop=True), read_table(interim / "detections_filtered.parquet", "detections")
+    return w.reset_index(drop=True), read(data_root, seq, "detections_filtered")
+
+
+def stage_defaults(name: str):
+    """The default config of pipeline stage `name` (what `pag <name>` runs without --set)."""
+    from pipeline import dag
+
+    return dag.load_stage(name).config_class()
+
+
+def run_stage(seq: str, data_root: Path, stage: str, overrides: list[str] | tuple[str, ...] = (),
+              tables: dict[str, pd.DataFrame] | None = None) -> tuple[dict[str, pd.DataFrame], float]:
+    """Run pipeline stage `stage` through the runner on sequence `seq` without touching its data: in a temporary
+    data/ whose datasets link to those under `data_root`, except `tables` (name -> DataFrame) written in place of
+    the stored ones. Returns the stage's output tables and the seconds the stage ran."""
+    import tempfile
+
+    from pipeline import dag
+    from pipeline.catalog import DATASETS
+    from pipeline.io import read_table, write_table
+    from pipeline.runner import Runner
+
+    tables = tables or {}
+    outputs = dag.load_stage(stage).outputs
+    with tempfile.TemporaryDirectory(prefix="pag_bench_") as tmp:
+        root = Path(tmp) / "data"
+        for name, ds in DATASETS.items():
+            src, dst = ds.path(data_root, seq), ds.path(root, seq)
+            if name in tables:
+                write_table(tables[name], dst, ds.schema)
+            elif src.exists() and name not in outputs:
+                dst.parent.mkdir(parents=True, exist_ok=True)
+                dst.symlink_to(src.resolve(), target_is_directory=src.is_dir())
+        result = Runner(seq, data_root=root, overrides=list(overrides), show_progress=False).run([stage], force=True)[0]
+        out = {o: read_table(DATASETS[o].path(root, seq), DATASETS[o].schema)
+               for o in outputs if DATASETS[o].kind == "table"}
+    return out, result.seconds

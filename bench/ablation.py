@@ -24,17 +24,15 @@ import numpy as np
 import pandas as pd
 import torch
 
-from bench._common import window_rows, write_parquet
+from bench._common import read, stage_defaults, window_rows, write_parquet
 from nerf.config import preset
 from nerf.field import param_count
 from nerf.panoptic_fit import PanopticConfig, complete_instances, fit_panoptic, render_panoptic
 from nerf.trainer import fit_window, psnr
 from pipeline.classes import VOID
 from pipeline.images import read_label
-from pipeline.io import read_table
-from stages.evaluate import Config as EvalConfig
-from stages.evaluate import PanopticScore, thing_instances
-from stages.nerf_fit import load_labels, load_window
+from rowmap.scoring import PanopticScore, thing_instances
+from rowmap.window_data import load_labels, load_window
 
 VARIANTS: dict[str, dict] = {
     "delta + ID window (ours)": dict(grid_mode="delta", id_window=True),
@@ -82,11 +80,12 @@ def window_count(preds: list[tuple[np.ndarray, np.ndarray]], gts: list[tuple[np.
 def score(preds: list[tuple[np.ndarray, np.ndarray]], gts: list[tuple[np.ndarray, np.ndarray]]) -> dict[str, float]:
     """PQ, mIoU, ID consistency and the window's fruit count error (window_count) of a window's rendered
     frames, scored as the evaluate stage does."""
-    min_px = EvalConfig().min_visible_px
+    ev = stage_defaults("evaluate")
+    min_px = ev.min_visible_px
     ps = PanopticScore(min_px)
     for (p_sem, p_inst), (g_sem, g_inst) in zip(preds, gts):
         ps.update(p_sem, p_inst, g_sem, g_inst, np.unique(g_inst[g_inst > 0]))
-    m = ps.metrics(EvalConfig().min_frames_id)
+    m = ps.metrics(ev.min_frames_id)
     return {k: m[k] for k in ("pq", "sq", "rq", "pq_things", "pq_stuff", "miou", "id_consistency")} | {
         "fruits_scored": int(m["id_consistency_n_fruits"])} | window_count(preds, gts, min_px)
 
@@ -94,9 +93,8 @@ def score(preds: list[tuple[np.ndarray, np.ndarray]], gts: list[tuple[np.ndarray
 def run(seq: str = "synth_row", window: int = 1, colour_steps: int = 0, panoptic_steps: int = 0, threads: int = 2,
         data_root: Path = Path("data"), out_dir: Path = Path("data/bench")) -> pd.DataFrame:
     torch.set_num_threads(threads)
-    interim = data_root / "interim" / seq
     w, dets = window_rows(data_root, seq, window)
-    gt_segments = read_table(interim / "gt_segments.parquet", "gt_segments")
+    gt_segments = read(data_root, seq, "gt_segments")
     data = load_window(w, data_root)
     labels = load_labels(w, dets, data_root)
     val = np.flatnonzero(~data.is_train)

@@ -33,7 +33,6 @@ from __future__ import annotations
 
 import argparse
 import copy
-import tempfile
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -42,7 +41,7 @@ import numpy as np
 import pandas as pd
 import torch
 
-from bench._common import kept_frames, write_parquet
+from bench._common import kept_frames, read, run_stage, write_parquet
 from bench.ablation import ground_truth, score
 from nerf.baselines import PANOPTIC_LIFTING_LIKE, SEMANTIC_ONLY
 from nerf.config import NerfConfig, preset
@@ -51,10 +50,7 @@ from nerf.field import param_count
 from nerf.geometry import pose_matrix
 from nerf.panoptic_fit import PanopticConfig, WindowLabels, complete_instances, fit_panoptic, render_panoptic
 from nerf.trainer import WindowData, fit_window, psnr
-from pipeline.io import read_table
-from stages.colmap_poses import Config as ColmapConfig
-from stages.colmap_poses import window_colmap
-from stages.nerf_fit import initial_poses, load_labels, load_window
+from rowmap.window_data import initial_poses, load_labels, load_window
 
 DEPTH_ICP = "depth ICP + online refinement"
 """the pipeline's default pose source: the odometry corrected with depth ICP (nerf/depth_poses.py, 'icp'),
@@ -112,20 +108,22 @@ def methods(colour_steps: int, with_l: bool) -> list[tuple[str, str, dict, dict]
     return out
 
 
-def colmap_window(interim: Path, w: pd.DataFrame, kept: pd.DataFrame, wid: int, data_root: Path
+def colmap_window(seq: str, data_root: Path, windows: pd.DataFrame, kept: pd.DataFrame, wid: int
                   ) -> tuple[pd.DataFrame | None, str]:
-    """The `kept` rows of window `w` (all its frames) with COLMAP initial poses, or None and why not. Poses come from the sequence's
-    colmap_poses.parquet when it covers the window; otherwise the bench runs COLMAP on the window itself
-    (default colmap_poses settings, about 7 s per window of 41 frames on 2 cores)."""
-    path = interim / "colmap_poses.parquet"
-    colmap = pd.read_parquet(path) if path.is_file() else None
+    """The `kept` rows of window `wid` with COLMAP initial poses, or None and why not. Poses come from the
+    sequence's colmap_poses table when it covers the window; otherwise the bench runs the colmap_poses stage
+    (default settings) on that window alone, in a temporary data/ (about 7 s per window of 41 frames on 2 cores)."""
+    try:
+        colmap = read(data_root, seq, "colmap_poses")
+    except FileNotFoundError:
+        colmap = None
     note = ""
-    if colmap is None or "window_id" not in colmap or not (colmap.window_id == wid).any():
-        with tempfile.TemporaryDirectory(prefix="pag_bench_colmap_") as tmp:
-            colmap, counts = window_colmap(wid, w.sort_values("frame_id"), ColmapConfig(enabled=True), data_root,
-                                           Path(tmp))
-        note = f"COLMAP run by the bench: {counts['frames'] - counts['frames_not_registered']} of {counts['frames']} " \
-               f"frames registered"
+    if colmap is None or not (colmap.window_id == wid).any():
+        out, _ = run_stage(seq, data_root, "colmap_poses", ["colmap_poses.enabled=true"],
+                           tables={"windows": windows[windows.window_id == wid]})
+        colmap = out["colmap_poses"]
+        c = colmap[colmap.window_id == wid]
+        note = f"COLMAP run by the bench: {int(c.registered.sum())} of {len(c)} frames take its poses"
     c = colmap[colmap.window_id == wid]
     if not (c["source"] == "colmap").any():
         return None, f"COLMAP registered no usable frame in window {wid}"
@@ -140,11 +138,8 @@ def run(seq: str = "synth_row", windows_sel: list[int] | None = None, colour_ste
         threads: int = 2, settings: str = "", data_root: Path = Path("data"),
         out_dir: Path = Path("data/bench")) -> pd.DataFrame:
     torch.set_num_threads(threads)
-    interim = data_root / "interim" / seq
-    frames = read_table(interim / "frames.parquet", "frames")
-    windows = read_table(interim / "windows.parquet", "windows")
-    dets = read_table(interim / "detections_filtered.parquet", "detections")
-    gt_segments = read_table(interim / "gt_segments.parquet", "gt_segments")
+    frames, windows = read(data_root, seq, "frames"), read(data_root, seq, "windows")
+    dets, gt_segments = read(data_root, seq, "detections_filtered"), read(data_root, seq, "gt_segments")
     all_ids = sorted(int(i) for i in windows.window_id.unique())
     for wid in windows_sel or all_ids:
         if wid not in all_ids:
@@ -165,7 +160,7 @@ def run(seq: str = "synth_row", windows_sel: list[int] | None = None, colour_ste
             ncfg = preset(kw.pop("preset"), **kw, steps=colour_steps, seed=wid)
             d = data
             if poses == "COLMAP":
-                cw, why = colmap_window(interim, w, wk, wid, data_root)
+                cw, why = colmap_window(seq, data_root, windows, wk, wid)
                 if cw is None:
                     rows.append({"method": name, "poses": poses, "status": "skipped", "note": why, **common})
                     print(f"window {wid}: {name} / {poses}: skipped ({why})", flush=True)

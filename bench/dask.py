@@ -2,25 +2,21 @@
 
 Each window of the sequence is cut into `--split` runs of consecutive frames (default 2) and the first
 `--tasks` of them (default 4: 2 per worker, so an idle worker at the end costs little) are fitted with
-fewer steps.
+fewer steps and without the panoptic phase (it scales the same way and would double the cost). The
+nerf_fit stage runs as the pipeline runs it (bench._common.run_stage: in a temporary data/ linked to the
+sequence's, which stays untouched); wall_s is the stage's run time, cluster start-up included.
 
     pag bench dask [--seq synth_row] [--steps 100] [--workers 2] [--split 2] [--tasks 4]
 """
 from __future__ import annotations
 
 import argparse
-import time
 from pathlib import Path
-import tempfile
 
 import numpy as np
 import pandas as pd
 
-from bench._common import bar_plot, write_parquet
-from pipeline import parallel
-from pipeline.io import read_table
-from nerf.panoptic_fit import PanopticConfig
-from stages.nerf_fit import Config, ModelOverrides, fit_one, initial_poses, model_config, window_payload
+from bench._common import bar_plot, read, run_stage, write_parquet
 
 
 def split_windows(windows: pd.DataFrame, parts: int) -> pd.DataFrame:
@@ -38,27 +34,20 @@ def split_windows(windows: pd.DataFrame, parts: int) -> pd.DataFrame:
 def run(seq: str = "synth_row", steps: int = 100, workers: int = 2, split: int = 2, tasks: int = 4,
         data_root: Path = Path("data"),
         out_dir: Path = Path("data/bench")) -> pd.DataFrame:
-    frames = read_table(data_root / "interim" / seq / "frames.parquet", "frames")
-    windows = split_windows(read_table(data_root / "interim" / seq / "windows.parquet", "windows"), max(1, split))
-    # the colour phase only (the panoptic phase scales the same way and would double the cost)
-    cfg = Config(model=ModelOverrides(steps=steps), panoptic=PanopticConfig(enabled=False))
-    mcfg = model_config(cfg)
+    windows = split_windows(read(data_root, seq, "windows"), max(1, split))
+    windows = windows[windows.window_id.isin(sorted(windows.window_id.unique())[: tasks or None])]
+    n_tasks = int(windows.window_id.nunique())
     rows = []
-    with tempfile.TemporaryDirectory() as tmp:
-        payloads = {}
-        for wid in sorted(windows.window_id.unique())[: tasks or None]:
-            w = windows[windows.window_id == wid].merge(frames, on="frame_id")
-            w = initial_poses(w, int(wid), None, "odometry")
-            payloads[str(wid)] = window_payload(int(wid), w, cfg, mcfg, "cpu", Path(tmp), data_root, None)
-        for n in (1, workers):
-            t0 = time.perf_counter()
-            out = parallel.map_tasks(fit_one, payloads, n_workers=n, threads_per_worker=1, show_progress=False)
-            wall = time.perf_counter() - t0
-            failed = [k for k, o in out.items() if o.error is not None]
-            if failed:
-                raise RuntimeError(f"windows {failed} failed: {out[failed[0]].error}")
-            rows.append({"workers": n, "threads_per_worker": 1, "windows": len(payloads), "steps": steps, "wall_s": wall,
-                         "task_s_mean": float(np.mean([o.seconds for o in out.values()]))})
+    for n in (1, workers):
+        out, wall = run_stage(seq, data_root, "nerf_fit", tables={"windows": windows}, overrides=[
+            f"nerf_fit.model.steps={steps}", "nerf_fit.panoptic.enabled=false", f"nerf_fit.workers={n}",
+            "nerf_fit.threads_per_worker=1"])
+        m = out["window_metrics"]
+        failed = m[m.status != "ok"]
+        if len(failed):
+            raise RuntimeError(f"windows {failed.window_id.tolist()} failed: {failed.error.iloc[0]}")
+        rows.append({"workers": n, "threads_per_worker": 1, "windows": n_tasks, "steps": steps, "wall_s": wall,
+                     "task_s_mean": float(m.fit_s.mean())})
     df = pd.DataFrame(rows)
     df["speedup_vs_1"] = df.wall_s.iloc[0] / df.wall_s
     out_dir.mkdir(parents=True, exist_ok=True)

@@ -27,12 +27,11 @@ import numpy as np
 import pandas as pd
 import torch
 
-from bench._common import window_rows, write_parquet
+from bench._common import read, window_rows, write_parquet
 from bench.compare import fit_and_score, scored_window
 from nerf.config import preset
 from nerf.panoptic_fit import PanopticConfig, WindowLabels
 from nerf.trainer import WindowData
-from pipeline.io import read_table
 
 # (name, preset the point starts from, changes); steps are scaled by the run mode
 POINTS: list[tuple[str, str, dict]] = [
@@ -91,9 +90,8 @@ def run(seq: str = "synth_row", window: int = 1, mode: str = "default", val_fram
         m["val_frames"] = val_frames
     settings = f"{mode}: base colour_steps={m['colour_steps']} panoptic_steps={m['panoptic_steps']} val_frames={m['val_frames']}"
     print(f"pag bench pareto, {settings}", flush=True)
-    interim = data_root / "interim" / seq
     w, dets = window_rows(data_root, seq, window)
-    gt_segments = read_table(interim / "gt_segments.parquet", "gt_segments")
+    gt_segments = read(data_root, seq, "gt_segments")
     data, labels, _, gts = scored_window(w, dets, gt_segments, data_root, m["val_frames"])
     pcfg = PanopticConfig(steps=m["panoptic_steps"])
     rows = []

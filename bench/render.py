@@ -20,7 +20,7 @@ import torch
 from bench._common import bar_plot, kept_frames, window_rows, write_parquet
 from nerf.config import preset
 from nerf.trainer import fit_window, psnr
-from stages.nerf_fit import load_window
+from rowmap.window_data import load_window
 
 
 def run(seq: str = "synth_row", window: int = 0, steps: int = 300, frames: int = 3, threads: int = 2,

@@ -32,7 +32,7 @@ from nerf.config import preset
 from nerf.panoptic_fit import PanopticConfig, WindowLabels, fit_panoptic
 from nerf.trainer import fit_window, psnr
 from pipeline.classes import THING_IDS
-from stages.nerf_fit import load_labels, load_window
+from rowmap.window_data import load_labels, load_window
 
 TINY_ROW = ["synth.n_frames=12", "synth.width=64", "synth.height=40", "synth.n_labelled=2", "synth.supersample=1",
             "synth.workers=1", "windows.half_width=3", "nerf_fit.model.steps=20", "nerf_fit.model.rays_per_step=128",

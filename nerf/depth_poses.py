@@ -24,7 +24,7 @@ from typing import Literal
 
 import numpy as np
 
-from nerf.geometry import rotation_angle_deg
+from nerf.geometry import align_similarity, rotation_angle_deg, similarity_matrix
 from nerf.surfaces import unproject
 
 
@@ -116,12 +116,9 @@ def place_onto(poses: np.ndarray, ref: np.ndarray) -> np.ndarray:
     """The rigid transform [4, 4] that best places trajectory `poses` [N, 4, 4] onto `ref`: the rotation is
     the chordal mean of ref_i R_i^T over the frames (orientations, not positions: a nearly straight track
     leaves the roll about it free in a fit of positions), then the mean positions coincide."""
-    m = np.einsum("nij,nkj->ik", ref[:, :3, :3], poses[:, :3, :3])   # sum_i R_ref,i R_i^T
-    u, _, vt = np.linalg.svd(m)
-    r = u @ np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))]) @ vt
-    t = np.eye(4)
-    t[:3, :3], t[:3, 3] = r, ref[:, :3, 3].mean(0) - r @ poses[:, :3, 3].mean(0)
-    return t
+    s, r, t = align_similarity(poses[:, :3, 3], ref[:, :3, 3], poses[:, :3, :3], ref[:, :3, :3], with_scale=False,
+                               position_weight=0.0, orientation_weight=1.0)
+    return similarity_matrix(s, r, t)
 
 
 def icp_trajectory(depths: np.ndarray, intrinsics: np.ndarray, c2w: np.ndarray, max_depth_m: float = 1.5,

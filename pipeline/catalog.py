@@ -44,6 +44,7 @@ DATASETS: dict[str, Dataset] = {
         _t("window_poses", "processed", "refined camera poses per window"),
         _t("window_metrics", "processed", "per-window quality and cost"),
         Dataset("nerf", "dir", "processed", "nerf", "per-window checkpoints and renders"),
+        _t("renders", "processed", "every render file of the fitted windows: window, frame, kind, path"),
         _t("panoptic_frames", "processed", "fused per-frame panoptic renders"),
         Dataset("panoptic", "dir", "processed", "panoptic", "fused panoptic PNGs with row-level fruit ids"),
         _t("fruit_slots", "processed", "window instance slots mapped to row-level fruit ids"),

@@ -5,6 +5,7 @@ writes its outputs atomically, and skips stages whose code, config and inputs ar
 from __future__ import annotations
 
 import hashlib
+import importlib
 import json
 import logging
 import shutil
@@ -18,7 +19,7 @@ import pandas as pd
 import yaml
 
 from pipeline import config as cfgmod
-from pipeline import dag, io, provenance
+from pipeline import codehash, dag, io, provenance
 from pipeline.catalog import DATASETS, dataset
 from pipeline.stage import StageContext
 
@@ -39,36 +40,13 @@ class StageResult:
 
 
 def code_hash(stage: dag.Stage) -> str:
-    """Hash of the stage's source file, of the other stage modules it imports (transitively) and of the
-    project packages any of them imports (sources, nerf, ...)."""
-    import ast
-
-    h = hashlib.blake2b(digest_size=16)
-    packages: set[str] = set()
-    todo, seen = [Path(stage.module.__file__)], set()
-    while todo:
-        src_file = todo.pop()
-        if src_file in seen or not src_file.is_file():
-            continue
-        seen.add(src_file)
-        h.update(src_file.name.encode())
-        h.update(src_file.read_bytes())
-        for node in ast.walk(ast.parse(src_file.read_text())):
-            names = ([node.module] if isinstance(node, ast.ImportFrom) and node.module else
-                     [a.name for a in node.names] if isinstance(node, ast.Import) else [])
-            for name in names:
-                parts = name.split(".")
-                if parts[0] == "stages" and len(parts) > 1:
-                    todo.append(REPO_ROOT / "stages" / f"{parts[1]}.py")
-                packages.add(parts[0])
-    for pkg in sorted(packages - {"pipeline", "stages"}):
-        pkg_dir = REPO_ROOT / pkg
-        if pkg_dir.is_dir() and (pkg_dir / "__init__.py").exists():
-            for p in sorted(pkg_dir.rglob("*")):
-                if p.suffix in (".py", ".cpp", ".cu", ".h") and "__pycache__" not in p.parts:
-                    h.update(p.relative_to(REPO_ROOT).as_posix().encode())
-                    h.update(p.read_bytes())
-    return h.hexdigest()
+    """Hash of the code the stage's result depends on: its module, every project module it imports
+    (transitively, pipeline/ included; docstrings and comments do not count, see pipeline/codehash.py) and
+    the schemas its output tables are validated with (schemas.get imports those by name)."""
+    schema_modules = [f"schemas.{dataset(o).schema}" for o in stage.outputs if dataset(o).kind == "table"]
+    files = {m: Path(importlib.import_module(m).__file__) for m in schema_modules}
+    files[stage.module.__name__] = Path(stage.module.__file__)
+    return codehash.code_hash([stage.module.__name__, *schema_modules], REPO_ROOT, files=files)
 
 
 class Runner:

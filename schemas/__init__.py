@@ -20,6 +20,7 @@ TABLES: tuple[str, ...] = (
     "colmap_poses",
     "window_poses",
     "window_metrics",
+    "renders",
     "panoptic_frames",
     "fruit_slots",
     "fruits",

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from nerf.geometry import pose_matrix, pose_txyzq, rotation_angle_deg
+from nerf.geometry import align_similarity, apply_similarity, pose_matrix, pose_txyzq, rotation_angle_deg
 from pipeline.stage import StageContext
 from schemas import empty
 
@@ -22,32 +22,41 @@ POSE_COLS = ["tx", "ty", "tz", "qx", "qy", "qz", "qw"]
 @dataclass(frozen=True)
 class Config:
     enabled: bool = False
-    """run COLMAP (off: `pag all` leaves the stage out; run alone it writes an empty table)."""
+    """run COLMAP (off: `pag all` leaves the stage out; run alone it writes an empty table). Turn it on to
+    start nerf_fit from COLMAP poses (nerf_fit.pose_source=colmap) or to compare them with the odometry."""
     min_registered: int = 3
-    """frames COLMAP must register in a window before its poses are used (else the window keeps odometry)."""
+    """frames, >= 2, COLMAP must register in a window (and keep after the residual checks) before its poses are
+    used; else the window keeps odometry. Raise it to trust only well-registered windows."""
     overlap: int = 10
-    """sequential matching: each frame is matched with this many following frames."""
+    """frames, >= 1: sequential matching pairs each frame with this many following frames. Raise it when
+    consecutive frames overlap little (fast motion), at a matching cost growing linearly with it."""
     max_features: int = 8192
-    """SIFT features per image at most."""
+    """features, >= 1: SIFT features extracted per image at most. Lower it on large images to save time."""
     sift_peak_threshold: float = 0.004
-    """SIFT detection threshold (COLMAP's default 0.0067 finds too few features on small images)."""
+    """> 0: SIFT detection threshold. Lower finds more (weaker) features; COLMAP's default 0.0067 finds too few
+    on small, low-contrast images of foliage."""
     min_inliers: int = 30
-    """verified matches needed for the initial image pair and for registering a further image."""
+    """matches, >= 1: verified matches needed for the initial image pair and for registering a further
+    image. Lower it for small images (fewer features), raise it when frames are registered wrongly."""
     min_tri_angle_deg: float = 4.0
-    """triangulation angle of the initial pair (COLMAP's 16 deg is more than a short window along a row offers)."""
+    """degrees, > 0: triangulation angle the initial pair needs. COLMAP's 16 deg is more than a short window
+    along a row offers; raise it with wide-baseline windows."""
     orientation_weight: float = 1.0
-    """weight of the camera orientations in the alignment (0 = plain Umeyama on the camera centres, whose
-    rotation about a straight trajectory is undetermined)."""
+    """>= 0: weight of the camera orientations against the centres in the alignment to odometry
+    (nerf.geometry.align_similarity; 0 = plain Umeyama on the centres, whose rotation about a straight
+    trajectory is undetermined). Keep it > 0 for straight tracks along a row."""
     max_residual_m: float = 0.05
-    """a registered frame whose aligned position is farther than this from its odometry position falls back to
-    odometry and takes no part in the alignment (pairs of frames are tried as hypotheses, see robust_similarity)."""
+    """metres, > 0. A registered frame whose aligned position is farther than this from its odometry position
+    falls back to odometry and takes no part in the alignment (pairs of frames are tried as hypotheses, see
+    robust_similarity). About the odometry's drift over a window; lower it to reject more registrations."""
     max_rot_residual_deg: float = 5.0
-    """likewise for the angle between its aligned and its odometry orientation (a short, narrow-baseline
-    reconstruction can be consistently tilted; odometry orientations are good to a few degrees per window)."""
+    """degrees, > 0: likewise for the angle between a frame's aligned and its odometry orientation (a short,
+    narrow-baseline reconstruction can be consistently tilted). About the odometry's orientation error over a
+    window."""
     threads: int = 0
-    """COLMAP threads (0 = all cores)."""
+    """COLMAP threads, >= 0 (0 = all cores). Set it when other work shares the machine."""
     seed: int = 0
-    """COLMAP's random seed."""
+    """COLMAP's random seed (RANSAC and the mapper); change it to check how much the poses depend on it."""
 
     def __post_init__(self) -> None:
         if self.min_registered < 2:
@@ -60,45 +69,6 @@ class Config:
                 raise ValueError(f"colmap_poses.{name} must be > 0, got {getattr(self, name)}")
         if self.orientation_weight < 0 or self.threads < 0:
             raise ValueError("colmap_poses.orientation_weight and colmap_poses.threads must be >= 0")
-
-
-# -- maths ----------------------------------------------------------------------------------------
-def align_similarity(src: np.ndarray, dst: np.ndarray, src_rot: np.ndarray | None = None,
-                     dst_rot: np.ndarray | None = None, orientation_weight: float = 1.0) -> tuple[float, np.ndarray, np.ndarray]:
-    """Similarity (s, R, t) with dst_i ~ s R src_i + t and dst_rot_i ~ R src_rot_i.
-
-    Umeyama (1991) maximises tr(R^T H), H = mean_i (dst_i - mu_d)(src_i - mu_s)^T. Camera centres along a
-    straight row are nearly collinear, which leaves the rotation about that line undetermined, so the
-    orientations add w * mean_i dst_rot_i src_rot_i^T (minimising sum |dst_rot_i - R src_rot_i|_F^2) to
-    H / (sigma_s sigma_d) (sigma = RMS distance to the centroid, making both terms unitless):
-        M = U D V^T,  R = U diag(1, 1, det(U V^T)) V^T,  s = sum (dst_i - mu_d) . R (src_i - mu_s) / sum |src_i - mu_s|^2
-    With w = 0 this is Umeyama's solution. src, dst [N, 3]; rotations [N, 3, 3]. Example: src = dst gives
-    s = 1, R = I, t = 0."""
-    src, dst = np.asarray(src, np.float64), np.asarray(dst, np.float64)
-    if src.shape != dst.shape or src.ndim != 2 or src.shape[1] != 3 or len(src) < 2:
-        raise ValueError(f"align_similarity needs two [N >= 2, 3] point sets, got {src.shape} and {dst.shape}")
-    mu_s, mu_d = src.mean(0), dst.mean(0)
-    xs, xd = src - mu_s, dst - mu_d
-    sig_s, sig_d = np.sqrt((xs ** 2).sum(1).mean()), np.sqrt((xd ** 2).sum(1).mean())
-    if not (sig_s > 0 and sig_d > 0):
-        raise ValueError("align_similarity: the camera centres coincide, so the scale is undetermined")
-    m = xd.T @ xs / len(src) / (sig_s * sig_d)
-    if src_rot is not None and dst_rot is not None and orientation_weight > 0:
-        m = m + orientation_weight * np.einsum("nij,nkj->ik", dst_rot, src_rot) / len(src_rot)
-    u, _, vt = np.linalg.svd(m)
-    r = u @ np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt)) or 1.0]) @ vt
-    s = float((xd * (xs @ r.T)).sum() / (xs ** 2).sum())
-    if not s > 0:
-        raise ValueError(f"align_similarity: non-positive scale {s} (the trajectories do not correspond)")
-    return s, r, mu_d - s * r @ mu_s
-
-
-def apply_similarity(s: float, r: np.ndarray, t: np.ndarray, c2w: np.ndarray) -> np.ndarray:
-    """Camera-to-world poses [N, 4, 4] of the source frame -> the target frame (rotation R, centre s R c + t)."""
-    out = np.array(c2w, np.float64, copy=True)
-    out[:, :3, :3] = r @ c2w[:, :3, :3]
-    out[:, :3, 3] = s * c2w[:, :3, 3] @ r.T + t
-    return out
 
 
 # -- COLMAP ---------------------------------------------------------------------------------------
@@ -198,7 +168,7 @@ def _fit(col: np.ndarray, odo: np.ndarray, sel: np.ndarray, cfg: Config):
     """Similarity fitted on the frames `sel` -> (s, aligned poses [M, 4, 4], position residuals [M] m,
     orientation residuals [M] deg, inliers [M] bool)."""
     s, r, t = align_similarity(col[sel, :3, 3], odo[sel, :3, 3], col[sel, :3, :3], odo[sel, :3, :3],
-                               cfg.orientation_weight)
+                               orientation_weight=cfg.orientation_weight)
     aligned = apply_similarity(s, r, t, col)
     res_t = np.linalg.norm(aligned[:, :3, 3] - odo[:, :3, 3], axis=1)
     res_r = rotation_angle_deg(aligned[:, :3, :3], odo[:, :3, :3])

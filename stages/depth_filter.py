@@ -18,9 +18,13 @@ OUTPUTS = ("detections_filtered", "gt_segments")
 @dataclass(frozen=True)
 class Config:
     max_depth_m: float = 1.5
-    """depth beyond which a pixel is not part of the near row (the far row is behind it)."""
+    """metres, > 0: depth beyond which a pixel is not part of the near row (the far row is behind it). Set it
+    between the near row's far side and the next row, from the row spacing and the camera's distance to the
+    row; fruit_count.max_depth_m should match."""
     min_near_frac: float = 0.5
-    """a mask is kept when at least this share of its pixels has valid depth within max_depth_m."""
+    """share in [0, 1]: a mask is kept when at least this share of its pixels has valid depth within
+    max_depth_m. Lower it when depth is often missing on fruits (shiny skin, sensor holes), raise it when
+    far-row fruits seen past near-row leaves are kept."""
 
     def __post_init__(self) -> None:
         if not self.max_depth_m > 0:

@@ -11,17 +11,16 @@ from scipy.optimize import linear_sum_assignment
 import schemas
 from nerf.geometry import pose_matrix
 from nerf.metrics import ate_rmse, rotation_error_deg
-from nerf.panoptic_metrics import ConfusionAccumulator, PanopticAccumulator, dominant_ids, id_consistency
-from pipeline.classes import DEFAULT_CLASSES, N_CLASSES, THING_IDS, VOID
+from pipeline.classes import THING_IDS, VOID
 from pipeline.images import read_label
 from pipeline.stage import StageContext
-from stages.panoptic_fusion import render_path
+from rowmap.renders import Renders
+from rowmap.scoring import PanopticScore
 
-INPUTS = ("raw", "frames", "windows", "window_poses", "window_metrics", "nerf", "gt_segments",
+INPUTS = ("raw", "frames", "windows", "window_poses", "window_metrics", "nerf", "renders", "gt_segments",
           "panoptic_frames", "panoptic", "fruits", "counts")
 OUTPUTS = ("evaluation",)
 
-STUFF_IDS = tuple(c.id for c in DEFAULT_CLASSES if not c.is_thing)
 POSE_COLS = ["tx", "ty", "tz"]
 QUAT_COLS = ["qx", "qy", "qz", "qw"]
 UNITS = {"psnr": "dB", "ate_odometry_m": "m", "ate_refined_m": "m", "rot_error_refined_deg": "deg",
@@ -34,14 +33,17 @@ UNITS = {"psnr": "dB", "ate_odometry_m": "m", "ate_refined_m": "m", "rot_error_r
 @dataclass(frozen=True)
 class Config:
     match_max_distance_m: float = 0.05
-    """a predicted fruit matches a ground-truth fruit (Hungarian on centre distance, after moving the predicted
-    centres into the ground-truth frame through the pose of a frame that saw them) only within this distance."""
+    """metres, > 0. A predicted fruit matches a ground-truth fruit (Hungarian on centre distance, after moving
+    the predicted centres into the ground-truth frame through the pose of a frame that saw them) only within
+    this distance. About half a fruit diameter; larger values match neighbouring fruits."""
     min_frames_id: int = 3
-    """fruits seen in at least this many frames are scored for ID consistency."""
+    """frames, >= 1: fruits seen in at least this many frames are scored for ID consistency (and count as
+    countable ground truth, count_gt)."""
     min_visible_px: int = 12
-    """ID consistency: a ground-truth fruit counts as visible in a frame with at least this many pixels (the
-    panoptic post-processing removes rendered segments below panoptic.min_segment_px = 12, and the detector
-    drops segments that small, so a fruit showing fewer pixels cannot carry an id)."""
+    """pixels, >= 1. ID consistency: a ground-truth fruit counts as visible in a frame with at least this many
+    pixels. Keep it at nerf_fit.panoptic.min_segment_px: the panoptic post-processing removes rendered segments
+    below that size (and the detector drops segments that small), so a fruit showing fewer pixels cannot carry
+    an id."""
 
     def __post_init__(self) -> None:
         if not self.match_max_distance_m > 0:
@@ -57,41 +59,6 @@ def void_far(sem: np.ndarray, inst: np.ndarray, far_ids: np.ndarray) -> tuple[np
         return sem, inst
     far = np.isin(inst, far_ids) & np.isin(sem, THING_IDS)
     return np.where(far, VOID, sem), np.where(far, 0, inst)
-
-
-def thing_instances(sem: np.ndarray, inst: np.ndarray) -> np.ndarray:
-    """Instance ids on thing pixels only (stuff pixels 0)."""
-    return np.where(np.isin(sem, THING_IDS), inst, 0)
-
-
-class PanopticScore:
-    """PQ / SQ / RQ, mIoU and fruit-ID consistency of one set of (pred, gt) panoptic images."""
-
-    def __init__(self, min_visible_px: int = 1) -> None:
-        self.min_visible_px = min_visible_px
-        self.pq = PanopticAccumulator(things=set(THING_IDS), stuff=set(STUFF_IDS))
-        self.conf = ConfusionAccumulator(N_CLASSES)
-        self.ids: list[dict[int, int]] = []
-        self.n = 0
-
-    def update(self, p_sem: np.ndarray, p_inst: np.ndarray, g_sem: np.ndarray, g_inst: np.ndarray,
-               fruit_ids: np.ndarray) -> None:
-        self.pq.update(p_sem, p_inst, g_sem, g_inst)
-        self.conf.update(p_sem, g_sem)
-        self.ids.append(dominant_ids(g_inst, thing_instances(p_sem, p_inst), fruit_ids, min_px=self.min_visible_px))
-        self.n += 1
-
-    def metrics(self, min_frames: int, suffix: str = "") -> dict[str, float]:
-        if not self.n:
-            return {}
-        pq = self.pq.compute()
-        out = {f"pq{suffix}": pq["pq"], f"sq{suffix}": pq["sq"], f"rq{suffix}": pq["rq"],
-               f"pq_things{suffix}": pq["pq_things"], f"pq_stuff{suffix}": pq["pq_stuff"],
-               f"miou{suffix}": self.conf.miou()}
-        if not suffix:
-            share, n = id_consistency(self.ids, min_frames)
-            out.update(id_consistency=share, id_consistency_n_fruits=float(n))
-        return out
 
 
 class GroundTruth:
@@ -129,7 +96,7 @@ def window_scores(inputs: dict, gt: GroundTruth, gt_poses: pd.DataFrame | None, 
                   ctx: StageContext) -> list[tuple[str, str, float]]:
     frames, windows = gt.frames, inputs["windows"]
     poses, metrics = inputs["window_poses"], inputs["window_metrics"]
-    nerf_dir = Path(inputs["nerf"])
+    renders = Renders(inputs["renders"], ctx.data_root)
     rows = []
     for m in ctx.progress(metrics.itertuples(index=False), "windows", total=len(metrics)):
         wid = int(m.window_id)
@@ -144,8 +111,8 @@ def window_scores(inputs: dict, gt: GroundTruth, gt_poses: pd.DataFrame | None, 
             if not gt.has(fid):
                 continue
             g_sem, g_inst, near = gt.load(fid)
-            sp, ip = render_path(nerf_dir, wid, "semantic", fid), render_path(nerf_dir, wid, "instance", fid)
-            if sp.is_file() and ip.is_file():
+            if renders.has(wid, fid, "semantic", "instance"):
+                sp, ip = (gt.root / renders.relpath(wid, fid, k) for k in ("semantic", "instance"))
                 nerf.update(*load_pred(sp, ip, g_sem.shape, f"window {wid} render of frame {fid}"),
                             g_sem, g_inst, near)
             fr = frames.loc[fid]

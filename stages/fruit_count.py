@@ -17,7 +17,9 @@ from pipeline.classes import DEFAULT_CLASSES, THING_IDS, class_name
 from pipeline.images import ImageError, read_label
 from pipeline.stage import StageContext
 from nerf.surfaces import fit_sphere, plausible_fit, principal_extents, robust_centre, unproject
-from stages.panoptic_fusion import DEPTH_SCALE_M, id_colours, subsample
+from rowmap.colours import id_colours
+from rowmap.geometry import subsample
+from rowmap.renders import read_depth
 
 INPUTS = ("frames", "nerf", "panoptic_frames", "panoptic", "fruit_slots")
 OUTPUTS = ("fruits", "counts", "fruit_map")
@@ -26,44 +28,50 @@ OUTPUTS = ("fruits", "counts", "fruit_map")
 @dataclass(frozen=True)
 class Config:
     max_depth_m: float = 1.5
-    """fruits whose median viewing depth is beyond this are the far row: near_row = false, not counted
-    (the same range as depth_filter.max_depth_m)."""
+    """metres, > 0. Fruits whose median viewing depth is beyond this are the far row: near_row = false, not
+    counted. Keep it equal to depth_filter.max_depth_m; set it from the row spacing (between the near row's
+    far side and the next row)."""
     mad_k: float = 3.0
-    """outlier test: a point is rejected when its distance to the fruit's median exceeds
-    median + mad_k * 1.4826 * MAD of those distances."""
+    """> 0. Outlier test: a point is rejected when its distance to the fruit's median exceeds
+    median + mad_k * 1.4826 * MAD of those distances (a robust 3-sigma at 3). Lower it when leaves or the next
+    fruit bleed into the masks' depth, raise it when small fruits lose too many points."""
     diameter_method: Literal["spheroid", "sphere", "pca"] = "spheroid"
-    """diameter_m from a least-squares fit to the visible surface of a spheroid with a vertical axis
-    ('spheroid': a hanging pepper is about a body of revolution, taller than wide; on the synthetic row
-    MAE 5 mm, bias < 1 mm), of a sphere ('sphere': its radius mixes width and length, biased high by
-    about 2 cm on peppers), or the principal extents of the points ('pca': a half-seen surface has a
-    smaller extent than the fruit, biased low by about 1 cm)."""
+    """what diameter_m reports: a least-squares fit to the visible surface of a spheroid with a vertical axis
+    ('spheroid': a hanging fruit such as a pepper is about a body of revolution, taller than wide), of a
+    sphere ('sphere': its radius mixes width and length, so it reads high on elongated fruits), or the
+    principal extents of the points ('pca': a half-seen surface is smaller than the fruit, so it reads low).
+    All three are written to fruits.parquet; 'sphere' suits round fruits (tomatoes, apples)."""
     min_points: int = 20
-    """fruits with fewer 3D points get no size (diameter null) and the median as centre."""
+    """points, >= 4: fruits with fewer 3D points get no size (diameter null) and the median as centre."""
     max_points_per_view: int = 600
-    """3D points kept per fruit and frame (evenly subsampled)."""
+    """points, >= 1: 3D points kept per fruit and frame (evenly subsampled); lower it on large images to save
+    time."""
     max_radius_m: float = 0.15
-    """a surface fit with a larger radius, or a centre farther than this from the points' median, is
-    rejected (a nearly flat patch); without any fit the fruit gets the median as centre and the PCA diameter."""
+    """metres, > 0. A surface fit with a larger radius, or a centre farther than this from the points'
+    median, is rejected (a nearly flat patch); without any fit the fruit gets the median as centre and the
+    PCA diameter. Set it above the largest fruit radius of the crop."""
     min_count_frames: int = 2
-    """a fruit seen in fewer fused frames is a fragment (a stray piece of a slot, a one-frame duplicate): listed
-    in fruits.parquet with counted = false, not counted."""
+    """fused frames, >= 1. A fruit seen in fewer is a fragment (a stray piece of a slot, a one-frame
+    duplicate): listed in fruits.parquet with counted = false, not counted. 1 = count every fruit seen."""
     min_count_points: int = 100
-    """a fruit with fewer 3D points over the row is a fragment too (counted = false)."""
+    """points, >= 0: a fruit with fewer 3D points over the row is a fragment too (counted = false). Scale it
+    with the image resolution (points per fruit grow with the pixels it covers)."""
     detector_cover: float = 0.3
-    """a fused frame confirms a fruit when the detector's thing segments of that frame cover at least this share
-    of the fruit's pixels there (the detector is not the NeRF's input on validation frames, so it is an
-    independent witness)."""
+    """share in (0, 1]: a fused frame confirms a fruit when the detector's thing segments of that frame cover at
+    least this share of the fruit's pixels there (the detector is not the NeRF's input on validation frames, so
+    it is an independent witness). Lower it for detectors with tight or partial masks."""
     detector_alpha: float = 0.01
-    """a fruit is unconfirmed (counted = false) when it is confirmed in under half the share of frames the row's
-    fruits are confirmed in on average (the detector's recall r) AND, were it real, so few confirmations out of
-    its n frames would have a chance under this (binomial: P(X <= k | n, r)). That is what the NeRF renders from
-    a detector false positive in a few training frames, which the validation frames' detections never repeat.
-    Default row: the one such fruit (0 of 4 frames) has 1e-4, the real fruits >= 0.09. 0 = off."""
+    """probability in [0, 1); 0 = off. A fruit is unconfirmed (counted = false) when it is confirmed in under
+    half the share of frames the row's fruits are confirmed in on average (the detector's recall r) AND, were
+    it real, so few confirmations out of its n frames would have a chance under this (binomial:
+    P(X <= k | n, r)). That is what the NeRF renders from a detector false positive in a few training frames,
+    which the validation frames' detections never repeat. Lower it to drop fewer fruits, 0 with a detector
+    that misses fruits in many frames."""
     max_fit_extent_ratio: float = 2.0
-    """a surface fit whose diameter (or length) exceeds this multiple of the largest extent of the points is
-    rejected too: it extrapolates a whole fruit from a small cap (a fruit seen only as a sliver over or past
-    another one), where a seen half of a fruit spans about its full diameter. Default row: the kept fits lie
-    at 1.0-1.25 times the extent; a fruit seen only as a sliver fitted 3 times its extent."""
+    """>= 1. A surface fit whose diameter (or length) exceeds this multiple of the largest extent of the points
+    is rejected too: it extrapolates a whole fruit from a small cap (a fruit seen only as a sliver over or past
+    another one), where a seen half of a fruit spans about its full diameter. Lower it (towards 1.3) when
+    occluded fruits get oversized diameters; raise it when fruits seen from one side only lose their fit."""
 
     def __post_init__(self) -> None:
         if not self.max_depth_m > 0:
@@ -185,7 +193,7 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
         fr = frames.loc[fid]
         inst = read_label(ctx.abspath(r.instance_path), "fused instance")
         sem = read_label(ctx.abspath(r.semantic_path), "fused semantic")
-        depth = read_label(ctx.abspath(r.depth_path), "depth render").astype(np.float32) * np.float32(DEPTH_SCALE_M)
+        depth = read_depth(ctx.abspath(r.depth_path))
         if not inst.shape == sem.shape == depth.shape:
             raise ImageError(f"frame {fid}: fused PNGs {r.instance_path} {inst.shape}, {r.semantic_path} {sem.shape} "
                              f"and depth render {r.depth_path} {depth.shape} differ in size")

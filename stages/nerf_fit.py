@@ -10,17 +10,18 @@ from typing import Literal
 import numpy as np
 import pandas as pd
 
+import schemas
 from nerf.config import NerfConfig, preset
 from nerf.depth_poses import DepthPoses, depth_initial_poses
 from nerf.panoptic_fit import PanopticConfig
-from nerf.geometry import pose_matrix, pose_txyzq, rotation_angle_deg
+from nerf.geometry import pose_txyzq, rotation_angle_deg
 from pipeline import parallel
-from pipeline.classes import VOID
-from pipeline.images import read_depth_m, read_label, read_rgb, write_png
 from pipeline.stage import StageContext
+from rowmap import renders as render_files
+from rowmap.window_data import initial_poses, load_labels, load_window, window_detections
 
 INPUTS = ("frames", "windows", "detections_filtered")
-OUTPUTS = ("window_poses", "window_metrics", "nerf")
+OUTPUTS = ("window_poses", "window_metrics", "nerf", "renders")
 OPTIONAL_INPUTS = ("colmap_poses",)  # initial poses when pose_source = colmap
 
 
@@ -81,82 +82,6 @@ def model_config(cfg: Config) -> NerfConfig:
     return preset(cfg.preset, refine_poses=cfg.refine_poses, seed=cfg.seed, **over)
 
 
-def load_window(frames: pd.DataFrame, data_root: Path):
-    from nerf.trainer import WindowData
-
-    imgs = np.stack([read_rgb(data_root / p) for p in frames["rgb_path"]])
-    deps = np.stack([read_depth_m(data_root / p, s) for p, s in zip(frames["depth_path"], frames["depth_scale_m"])])
-    k = frames[["fx", "fy", "cx", "cy"]].to_numpy(np.float64)
-    poses = pose_matrix(frames[["tx", "ty", "tz", "qx", "qy", "qz", "qw"]].to_numpy(np.float64))
-    return WindowData(imgs, deps, k, poses, (frames["split"] == "train").to_numpy(), frames["frame_id"].to_numpy())
-
-
-def load_labels(frames: pd.DataFrame, dets: pd.DataFrame | None, data_root: Path):
-    """The detector's panoptic input of a window's frames (nerf/panoptic_fit.WindowLabels): segments the
-    depth filter dropped become void, thing pixels carry their segment's score, stuff pixels 1."""
-    from nerf.panoptic_fit import WindowLabels
-
-    sems, insts, confs = [], [], []
-    h, w = int(frames["height"].iloc[0]), int(frames["width"].iloc[0])
-    for fid, sp, ip in zip(frames["frame_id"], frames["det_semantic_path"], frames["det_instance_path"]):
-        if not isinstance(sp, str) or not isinstance(ip, str):  # no detector output for this frame: all void
-            sems.append(np.full((h, w), VOID, np.uint8))
-            insts.append(np.zeros((h, w), np.int32))
-            confs.append(np.zeros((h, w), np.float32))
-            continue
-        sem = read_label(data_root / sp, "detector semantic").astype(np.uint8)
-        inst = read_label(data_root / ip, "detector instance")
-        if sem.shape != (h, w) or inst.shape != (h, w):
-            raise ValueError(f"frame {fid}: detector PNGs {sp} / {ip} are {sem.shape} / {inst.shape}, "
-                             f"the images are {(h, w)}")
-        conf = np.where(sem == VOID, 0.0, 1.0).astype(np.float32)
-        if dets is not None:
-            fd = dets[dets.frame_id == fid]
-            lut_keep = np.ones(int(max(inst.max(), fd.segment_id.max() if len(fd) else 0)) + 1, bool)
-            lut_score = np.ones(len(lut_keep), np.float32)
-            lut_keep[fd.segment_id.to_numpy()] = fd.kept.to_numpy()
-            lut_score[fd.segment_id.to_numpy()] = fd.score.to_numpy()
-            on = inst > 0
-            conf[on] = lut_score[inst[on]]
-            drop = on & ~lut_keep[inst]
-            sem[drop] = VOID
-            inst[drop] = 0
-            conf[drop] = 0.0
-        sems.append(sem)
-        insts.append(inst)
-        confs.append(conf)
-    return WindowLabels(np.stack(sems), np.stack(insts), np.stack(confs))
-
-
-def initial_poses(w: pd.DataFrame, wid: int, colmap: pd.DataFrame | None, source: str) -> pd.DataFrame:
-    """The window's rows (windows merged with frames) with the initial pose columns taken from `source`
-    and a `pose_source` column per frame ('odometry' or 'colmap', as colmap_poses.parquet says)."""
-    w = w.copy()
-    w["pose_source"] = "odometry"
-    if source == "odometry":
-        return w
-    if colmap is None or colmap.empty:
-        raise ValueError("nerf_fit.pose_source=colmap, but colmap_poses.parquet is "
-                         f"{'missing' if colmap is None else 'empty'}; run `pag colmap_poses --set "
-                         "colmap_poses.enabled=true` first (or `pag all` with that setting)")
-    cols = ["tx", "ty", "tz", "qx", "qy", "qz", "qw"]
-    c = colmap[colmap.window_id == wid].set_index("frame_id")
-    missing = sorted(set(w["frame_id"]) - set(c.index))
-    if missing:
-        raise ValueError(f"nerf_fit.pose_source=colmap: colmap_poses.parquet has no pose for window {wid}, frames "
-                         f"{missing[:10]}; it is older than windows.parquet: rerun `pag colmap_poses`")
-    c = c.loc[w["frame_id"]]
-    w[cols] = c[cols].to_numpy()
-    w["pose_source"] = c["source"].to_numpy()
-    return w
-
-
-def _window_detections(dets: pd.DataFrame | None, w: pd.DataFrame) -> dict | None:
-    if dets is None or dets.empty:
-        return None
-    return dets[dets.frame_id.isin(w.frame_id)][["frame_id", "segment_id", "score", "kept"]].to_dict("list")
-
-
 def window_payload(wid: int, w: pd.DataFrame, cfg: Config, mcfg: NerfConfig, device: str, out_dir: Path,
                    data_root: Path, detections: dict | None) -> dict:
     """The task fit_one runs for window `wid` (its frame rows `w` with their initial poses)."""
@@ -201,16 +126,11 @@ def fit_one(payload: dict) -> dict:
         val = [int(i) for i in np.flatnonzero(~data.is_train)]
         complete_instances([res.renders[i] for i in val], data.intrinsics[val], res.poses_c2w[val], pan.cfg)
     torch.save(state, wdir / "checkpoint.pt")
+    kinds = render_files.KINDS if pan is not None else ("rgb", "depth")
+    render_rows = []
     for i in np.flatnonzero(~data.is_train):
         out = res.renders[int(i)]
-        fid = int(data.frame_ids[i])
-        if pan is not None:
-            write_png(wdir / "renders" / f"semantic_{fid:06d}.png", out["semantic"].astype(np.uint8))
-            write_png(wdir / "renders" / f"instance_{fid:06d}.png", out["instance"].astype(np.uint16))
-        rgb = (out["rgb"].clamp(0, 1).cpu().numpy() * 255).round().astype(np.uint8)
-        depth_mm = np.clip(out["depth"].cpu().numpy() * 1000, 0, 65535).round().astype(np.uint16)
-        write_png(wdir / "renders" / f"rgb_{fid:06d}.png", rgb)
-        write_png(wdir / "renders" / f"depth_{fid:06d}.png", depth_mm)
+        render_rows += render_files.write_frame(out_dir, wid, int(data.frame_ids[i]), {k: out[k] for k in kinds})
     init = odometry
     final = res.poses_c2w
     dt = np.linalg.norm(final[:, :3, 3] - init[:, :3, 3], axis=1)
@@ -233,7 +153,7 @@ def fit_one(payload: dict) -> dict:
                "id_window_width": pan.slot_window.width if pan and pan.slot_window else 0,
                **depth_info,
                "checkpoint": f"window_{wid:03d}/checkpoint.pt"}
-    return {"poses": poses.to_dict("list"), "metrics": metrics}
+    return {"poses": poses.to_dict("list"), "metrics": metrics, "renders": render_rows}
 
 
 def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]:
@@ -255,12 +175,12 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
             raise ValueError(f"window {wid}: frames {w.loc[w.rgb_path.isna(), 'frame_id'].tolist()} not in frames.parquet")
         w = initial_poses(w, int(wid), colmap, cfg.pose_source)
         payloads[str(wid)] = window_payload(int(wid), w, cfg, mcfg, ctx.device, out_dir, ctx.data_root,
-                                            _window_detections(dets, w))
+                                            window_detections(dets, w))
     n_workers = cfg.workers or parallel.default_workers(len(payloads))
     threads = cfg.threads_per_worker or max(1, (os.cpu_count() or 1) // n_workers)
     outcomes = parallel.map_tasks(fit_one, payloads, n_workers=n_workers, threads_per_worker=threads,
                                   scheduler=ctx.scheduler, show_progress=ctx.show_progress, desc="window")
-    pose_tables, metric_rows = [], []
+    pose_tables, metric_rows, render_rows = [], [], []
     for key in payloads:
         o = outcomes[key]
         wid = int(key)
@@ -284,6 +204,8 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
         m["checkpoint_path"] = ctx.relpath("nerf", m.pop("checkpoint"))
         metric_rows.append({**base, **m})
         pose_tables.append(pd.DataFrame(o.result["poses"]))
+        render_rows += [{"window_id": r["window_id"], "frame_id": r["frame_id"], "kind": r["kind"],
+                         "path": ctx.relpath("nerf", r["file"])} for r in o.result["renders"]]
     metrics = pd.DataFrame(metric_rows)
     poses = pd.concat(pose_tables, ignore_index=True) if pose_tables else None
     if poses is None:
@@ -291,4 +213,5 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
     ok = metrics[metrics.status == "ok"]
     ctx.summary.update(windows=len(metrics), failed=int((metrics.status != "ok").sum()),
                        mean_val_psnr=round(float(ok.val_psnr.mean()), 2), mean_fit_s=round(float(ok.fit_s.mean()), 1))
-    return {"window_poses": poses, "window_metrics": metrics}
+    renders = pd.DataFrame(render_rows, columns=schemas.get("renders").names) if render_rows else schemas.empty("renders")
+    return {"window_poses": poses, "window_metrics": metrics, "renders": renders}

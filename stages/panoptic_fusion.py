@@ -1,11 +1,9 @@
 """Fuse the windows' instance slots into row-level fruit ids and write per-frame panoptic PNGs with them."""
 from __future__ import annotations
 
-import os
 from collections import defaultdict
 from dataclasses import dataclass, field
 from typing import Literal
-from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -13,59 +11,66 @@ from scipy.optimize import linear_sum_assignment
 
 import schemas
 from nerf.geometry import pose_matrix, pose_txyzq
-from nerf.surfaces import fit_sphere, plausible_fit, principal_extents, robust_centre, unproject
+from nerf.surfaces import robust_centre, unproject
 from pipeline.classes import THING_IDS, VOID
-from pipeline.images import ImageError, read_label, write_png
+from pipeline.images import ImageError, write_png
 from pipeline.stage import StageContext
+from rowmap.geometry import POSE_COLS, subsample, surface_centre, window_alignments
+from rowmap.renders import PANOPTIC_KINDS, Renders
 
-INPUTS = ("frames", "windows", "window_poses", "window_metrics", "nerf")
+INPUTS = ("frames", "windows", "window_poses", "window_metrics", "nerf", "renders")
 OUTPUTS = ("panoptic_frames", "panoptic", "fruit_slots")
-
-RENDER_KINDS = ("rgb", "depth", "semantic", "instance")
-POSE_COLS = ("tx", "ty", "tz", "qx", "qy", "qz", "qw")
-DEPTH_SCALE_M = 0.001
-"""NeRF depth renders are 16-bit millimetres (data/README.md)."""
 
 
 @dataclass(frozen=True)
 class Config:
     max_match_distance_m: float = 0.04
-    """two windows' slots are the same fruit only if their 3D centres are closer than this (about half a
-    sweet-pepper diameter: neighbouring fruits never touch closer, centre estimates of one fruit agree)."""
+    """metres, > 0. Two windows' slots are the same fruit only if their 3D centres are closer than this. About
+    half a fruit's diameter: neighbouring fruits' centres lie farther apart, two windows' estimates of one
+    fruit closer. Scale it with the crop's fruit size; raise it when the windows' poses disagree by more
+    than a few centimetres (window_alignment_max_m in the stage summary grows with such drift)."""
     strong_mask_overlap: float = 0.8
-    """two slots are the same fruit up to strong_match_distance_m apart when, on the frames both windows
-    rendered, this share of the smaller of the two masks lies inside the other (pooled over those frames;
-    also their IoU must reach min_mask_iou). A fruit a window sees only while it leaves or enters the image
-    gets a poor centre from that sliver (default row: 6.8 cm off), and a window renders a fruit it is losing
-    smaller than the next window does, so containment, not IoU, is the evidence (default row: IoU 0.49,
-    95 % of the smaller masks inside the larger)."""
+    """share in [0, 1]. Two slots are the same fruit up to strong_match_distance_m apart when, on the frames
+    both windows rendered, this share of the smaller mask lies inside the other (pooled over those frames;
+    their IoU must still reach min_mask_iou). A window that sees a fruit only as a sliver while it enters or
+    leaves the image gets a poor centre from it and renders the fruit smaller than its neighbour does, so
+    containment, not IoU, is the evidence there. Lower it to merge more such pairs (at the risk of merging
+    touching fruits); 1 = only exact containment."""
     strong_match_distance_m: float = 0.08
-    """the distance gate for slots whose masks overlap by strong_mask_overlap."""
+    """metres, >= 0: the distance gate for slots whose masks overlap by strong_mask_overlap (0 or at most
+    max_match_distance_m = no relaxed gate). About one fruit diameter."""
     min_mask_iou: float = 0.3
-    """on frames both windows rendered, the two slots' masks must overlap at least this much (IoU pooled
-    over those frames); slots neither window shows there are matched on distance alone."""
+    """IoU in [0, 1]: on frames both windows rendered, the two slots' masks must overlap at least this much
+    (pooled over those frames); slots neither window shows there are matched on distance alone. Raise it
+    when touching fruits get merged, lower it when one fruit keeps two ids across windows."""
     split_distance_m: float = 0.08
-    """a slot whose per-frame centres form clusters farther apart than this inside one window is split into
-    several fruits (the NeRF gave one slot to two fruits at opposite ends of the frustum); 0 = never split."""
+    """metres, >= 0. A slot whose per-frame centres form clusters farther apart than this inside one window is
+    split into several fruits (the NeRF gave one slot to two fruits at opposite ends of the frustum); 0 =
+    never split. About one fruit diameter; lower it for small fruits."""
     min_split_frames: int = 2
-    """a split-off cluster becomes a fruit of its own only if it holds at least this many frames; a single
-    frame's stray centre (a sliver at the image border, un-projected onto what lies behind it) rejoins the
-    slot's main cluster."""
+    """frames, >= 1. A split-off cluster becomes a fruit of its own only if it holds at least this many frames;
+    a single frame's stray centre (a sliver at the image border, un-projected onto what lies behind it)
+    rejoins the slot's main cluster. 1 = every cluster is a fruit."""
     centre: Literal["sphere", "median"] = "sphere"
     """a slot's 3D centre for the association: 'sphere' = centre of a sphere fitted to its seen surface
     (median where no plausible fit), 'median' = median of the seen surface points (biased towards the
-    cameras that saw it, so windows that saw a fruit from opposite sides disagree by centimetres)."""
+    cameras that saw it, so windows that saw a fruit from opposite sides disagree by centimetres). Use
+    'median' for crops whose fruits are far from round."""
     max_fruit_radius_m: float = 0.1
-    """a sphere fit with a larger radius is not a fruit (a flat patch): the median is used."""
+    """metres, > 0: a sphere fit with a larger radius is not a fruit (a flat patch) and the median is used.
+    Set it somewhat above the largest fruit radius of the crop."""
     align_windows: bool = True
     """bring every window into one row frame before fusing: each window refines its poses on its own, so two
     windows place one fruit where their own stretch of odometry put it, centimetres apart over a row with
     drift. The frames two windows share give the rigid transform between them; windows are chained from the
-    first (whose frame, the odometry's near the row start, is the row frame). Off = each window's own frame."""
+    first (whose frame, the odometry's near the row start, is the row frame). Off = each window's own frame
+    (only for windows that share no frame, or to inspect the raw per-window poses)."""
     min_slot_px: int = 4
-    """slots with fewer pixels over all the window's frames are dropped (pixels become void)."""
+    """pixels, >= 1: slots with fewer pixels over all the window's frames are dropped (their pixels become
+    void). Raise it when specks of a few pixels show up as fruits."""
     max_points_per_view: int = 400
-    """3D points kept per slot and frame for the centre (evenly subsampled)."""
+    """points, >= 1: 3D points kept per slot and frame for the centre (evenly subsampled). More points cost
+    time and change the centres little; lower it on large images to save time."""
 
     def __post_init__(self) -> None:
         if not self.max_match_distance_m > 0:
@@ -82,83 +87,11 @@ class Config:
                              "min_split_frames >= 1")
 
 
-# -- shared helpers (also used by fruit_count, evaluate and report) ---------------------------------------
-
-def rigid_between(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
-    """Rigid transform T [4, 4] with T @ src[i] ~ dst[i] for camera poses src, dst [N, 4, 4]: the rotation
-    is the chordal mean of dst_R src_R^T (orientations pin the roll about the row a straight, nearly
-    collinear track of positions leaves free), the translation the mean of dst_t - R src_t."""
-    m = np.einsum("nij,nkj->ik", dst[:, :3, :3], src[:, :3, :3])          # sum of dst_R @ src_R^T
-    u, _, vt = np.linalg.svd(m)
-    r = u @ np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))]) @ vt
-    out = np.eye(4)
-    out[:3, :3] = r
-    out[:3, 3] = (dst[:, :3, 3] - src[:, :3, 3] @ r.T).mean(0)
-    return out
-
-
-def window_alignments(window_poses: pd.DataFrame) -> dict[int, np.ndarray]:
-    """Per window, the transform [4, 4] from its own (refined) frame into the row frame: the first window's
-    frame, each later window joined to the nearest earlier one it shares frames with (rigid_between on the
-    shared frames' poses, as already aligned). A window sharing no frame keeps the previous one's transform."""
-    poses = {int(w): dict(zip(g.frame_id.astype(int), pose_matrix(g[list(POSE_COLS)].to_numpy(np.float64))))
-             for w, g in window_poses.groupby("window_id")}
-    out: dict[int, np.ndarray] = {}
-    done: list[int] = []
-    for wid in sorted(poses):
-        t = out[done[-1]] if done else np.eye(4)
-        for prev in reversed(done):
-            shared = sorted(set(poses[wid]) & set(poses[prev]))
-            if shared:
-                src = np.stack([poses[wid][f] for f in shared])
-                dst = out[prev] @ np.stack([poses[prev][f] for f in shared])
-                t = rigid_between(src, dst)
-                break
-        out[wid] = t
-        done.append(wid)
-    return out
-
-
-def render_path(nerf_dir: Path, window_id: int, kind: str, frame_id: int) -> Path:
-    """nerf/window_NNN/renders/<kind>_<frame>.png; <frame> zero-padded to 6 digits (as nerf_fit writes it)
-    or plain, whichever exists (the padded name when neither does)."""
-    d = nerf_dir / f"window_{window_id:03d}" / "renders"
-    padded = d / f"{kind}_{frame_id:06d}.png"
-    if padded.is_file():
-        return padded
-    plain = d / f"{kind}_{frame_id}.png"
-    return plain if plain.is_file() else padded
-
-
-def data_relpath(path: Path, data_root: Path) -> str:
-    """`path` relative to data/ (what tables store)."""
-    return Path(os.path.relpath(Path(path).resolve(), Path(data_root).resolve())).as_posix()
-
-
-def surface_centre(points: np.ndarray, max_radius_m: float, min_points: int = 20,
-                   max_extent_ratio: float = 2.0) -> np.ndarray:
-    """Centre of a fruit from world points [N, 3] of its seen surface: the centre of a least-squares sphere
-    through the inliers of robust_centre where that fit is plausible (plausible_fit), else their median.
-    The median of a seen surface sits on the side facing the camera, so two windows that saw one fruit
-    from either side put medians several centimetres apart; the sphere centre does not move with the view."""
-    med, keep = robust_centre(points)
-    inl = points[keep]
-    if len(inl) < max(min_points, 4):
-        return med
-    c, r = fit_sphere(inl)
-    return c if plausible_fit(c, r, med, principal_extents(inl)[0], max_radius_m, max_extent_ratio) else med
-
-
-def subsample(n: int, cap: int) -> np.ndarray:
-    """Evenly spaced indices of at most `cap` of n items (deterministic)."""
-    return np.arange(n) if n <= cap else np.round(np.linspace(0, n - 1, cap)).astype(np.int64)
-
-
 def window_views(windows: pd.DataFrame, window_poses: pd.DataFrame, window_metrics: pd.DataFrame,
-                 nerf_dir: Path, ctx: StageContext) -> pd.DataFrame:
+                 renders: Renders, ctx: StageContext) -> pd.DataFrame:
     """(window_id, frame_id, offset, pose) of every rendered validation frame of the fitted windows.
     Failed windows and windows without panoptic renders are skipped with a counted note; a window with
-    panoptic renders for some validation frames but not others is an error naming the missing file."""
+    panoptic renders for some validation frames but not others is an error naming what is missing."""
     ok = set(window_metrics.loc[window_metrics.status == "ok", "window_id"].astype(int))
     for wid in sorted(set(window_metrics.window_id.astype(int)) - ok):
         ctx.count("windows_failed_skipped")
@@ -169,19 +102,17 @@ def window_views(windows: pd.DataFrame, window_poses: pd.DataFrame, window_metri
     for wid, g in v.groupby("window_id"):
         if int(wid) not in ok:
             continue
-        have = [all(render_path(nerf_dir, int(wid), k, int(f)).is_file() for k in ("semantic", "instance", "depth"))
-                for f in g.frame_id]
+        have = [renders.has(int(wid), int(f), *PANOPTIC_KINDS) for f in g.frame_id]
         if not any(have):
             ctx.count("windows_without_panoptic_renders")
-            ctx.note(f"window {wid}: no panoptic renders (semantic/instance/depth_<frame>.png) in "
-                     f"{nerf_dir / f'window_{int(wid):03d}' / 'renders'}; skipped")
+            ctx.note(f"window {wid}: no panoptic renders ({'/'.join(PANOPTIC_KINDS)}) in renders.parquet; skipped")
             continue
         if not all(have):
             f = int(g.frame_id.to_numpy()[~np.asarray(have)][0])
-            missing = [render_path(nerf_dir, int(wid), k, f) for k in ("semantic", "instance", "depth")]
-            raise ImageError(f"window {wid}, validation frame {f}: render "
-                             f"{next(p for p in missing if not p.is_file())} is missing while other validation "
-                             f"frames of the window have theirs; rerun `pag nerf_fit --force`")
+            missing = [k for k in PANOPTIC_KINDS if not renders.has(int(wid), f, k)]
+            raise ImageError(f"window {wid}, validation frame {f}: renders.parquet lists no {'/'.join(missing)} "
+                             f"render while other validation frames of the window have theirs; rerun "
+                             f"`pag nerf_fit --force`")
         rows.append(g)
     if not rows:
         return pd.DataFrame(columns=["window_id", "frame_id", "offset", "c2w"])
@@ -190,17 +121,9 @@ def window_views(windows: pd.DataFrame, window_poses: pd.DataFrame, window_metri
     return out[["window_id", "frame_id", "offset", "c2w"]]
 
 
-def read_render(nerf_dir: Path, wid: int, fid: int, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def read_render(renders: Renders, wid: int, fid: int, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(semantic, instance, depth in m) of one rendered frame, checked against the frame's image size."""
-    sem = read_label(render_path(nerf_dir, wid, "semantic", fid), f"window {wid} semantic render")
-    inst = read_label(render_path(nerf_dir, wid, "instance", fid), f"window {wid} instance render")
-    dpath = render_path(nerf_dir, wid, "depth", fid)
-    depth = read_label(dpath, f"window {wid} depth render").astype(np.float32) * np.float32(DEPTH_SCALE_M)
-    for name, a in (("semantic", sem), ("instance", inst), ("depth", depth)):
-        if a.shape != shape:
-            raise ImageError(f"window {wid}, frame {fid}: {name} render {render_path(nerf_dir, wid, name, fid)} is "
-                             f"{a.shape[1]}x{a.shape[0]}, frames.parquet says {shape[1]}x{shape[0]}")
-    return sem, inst, depth
+    return tuple(renders.read(wid, fid, k, shape) for k in PANOPTIC_KINDS)  # type: ignore[return-value]
 
 
 # -- fusion ----------------------------------------------------------------------------------------------
@@ -347,8 +270,8 @@ def associate(fruits: list[LocalFruit], masks: dict[tuple[int, int], np.ndarray]
 
 def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]:
     frames: pd.DataFrame = inputs["frames"].set_index("frame_id", drop=False)
-    nerf_dir = Path(inputs["nerf"])
-    views = window_views(inputs["windows"], inputs["window_poses"], inputs["window_metrics"], nerf_dir, ctx)
+    renders = Renders(inputs["renders"], ctx.data_root)
+    views = window_views(inputs["windows"], inputs["window_poses"], inputs["window_metrics"], renders, ctx)
     if cfg.align_windows and not views.empty:
         wp = inputs["window_poses"]
         align = window_alignments(wp[wp.window_id.isin(views.window_id.unique())])
@@ -376,7 +299,7 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
     for r in ctx.progress(views.itertuples(index=False), "read renders", total=len(views)):
         wid, fid = int(r.window_id), int(r.frame_id)
         fr = frames.loc[fid]
-        sem, inst, depth = read_render(nerf_dir, wid, fid, (int(fr.height), int(fr.width)))
+        sem, inst, depth = read_render(renders, wid, fid, (int(fr.height), int(fr.width)))
         thing = np.isin(sem, THING_IDS) & (inst > 0)
         if fid in shared_frames:
             masks[(wid, fid)] = np.where(thing, inst, 0).astype(np.int32)
@@ -446,7 +369,7 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
                           total=int(pick.frame_id.nunique())):
         wid, fid = int(r.window_id), int(r.frame_id)
         fr = frames.loc[fid]
-        sem, inst, _ = read_render(nerf_dir, wid, fid, (int(fr.height), int(fr.width)))
+        sem, inst, _ = read_render(renders, wid, fid, (int(fr.height), int(fr.width)))
         thing = np.isin(sem, THING_IDS) & (inst > 0)
         out_inst = np.zeros(inst.shape, np.uint16)
         out_sem = sem.astype(np.uint8)
@@ -464,8 +387,8 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
                      "n_windows": int(n_win[fid]),
                      "semantic_path": ctx.relpath("panoptic", f"semantic/{name}"),
                      "instance_path": ctx.relpath("panoptic", f"instance/{name}"),
-                     "rgb_path": data_relpath(render_path(nerf_dir, wid, "rgb", fid), ctx.data_root),
-                     "depth_path": data_relpath(render_path(nerf_dir, wid, "depth", fid), ctx.data_root),
+                     "rgb_path": renders.relpath(wid, fid, "rgb"),
+                     "depth_path": renders.relpath(wid, fid, "depth"),
                      "n_fruits": int(len(np.unique(out_inst[out_inst > 0]))),
                      **dict(zip(POSE_COLS, pose_txyzq(r.c2w[None])[0].tolist()))})
     slots = pd.DataFrame([{
@@ -479,12 +402,3 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
                        frames_in_several_windows=len(shared_frames))
     return {"panoptic_frames": pd.DataFrame(rows, columns=schemas.get("panoptic_frames").names),
             "fruit_slots": slots}
-
-
-def id_colours(ids: np.ndarray) -> np.ndarray:
-    """Distinct, deterministic RGB colours [N, 3] uint8 for instance ids (golden-ratio hues)."""
-    import colorsys
-
-    ids = np.asarray(ids, np.int64).ravel()
-    out = np.array([colorsys.hsv_to_rgb((i * 0.618033988749895) % 1.0, 0.75, 0.95) for i in ids]).reshape(-1, 3)
-    return (out * 255).round().astype(np.uint8)

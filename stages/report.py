@@ -5,7 +5,6 @@ import base64
 import html
 import io
 from dataclasses import dataclass
-from pathlib import Path
 
 import cv2
 import numpy as np
@@ -14,9 +13,10 @@ import pandas as pd
 from pipeline.classes import DEFAULT_CLASSES, THING_IDS, VOID
 from pipeline.images import read_label, read_rgb
 from pipeline.stage import StageContext
-from stages.panoptic_fusion import id_colours, render_path
+from rowmap.colours import id_colours
+from rowmap.renders import Renders
 
-INPUTS = ("frames", "windows", "window_metrics", "nerf", "panoptic_frames", "panoptic", "fruits", "counts")
+INPUTS = ("frames", "windows", "window_metrics", "nerf", "renders", "panoptic_frames", "panoptic", "fruits", "counts")
 OPTIONAL_INPUTS = ("evaluation",)
 OUTPUTS = ("report",)
 
@@ -26,9 +26,11 @@ SECTIONS = ("Run configuration", "Windows", "Centre frames", "Fruit map", "Count
 @dataclass(frozen=True)
 class Config:
     image_width_px: int = 320
-    """width of each image in the centre-frame panels (nearest-neighbour scaled)."""
+    """pixels, >= 16: width of each image in the centre-frame panels (nearest-neighbour scaled). The page
+    embeds every image, so wider panels make a larger HTML file."""
     max_windows_shown: int = 12
-    """centre-frame panels for at most this many windows (evenly spread)."""
+    """windows, >= 1: centre-frame panels for at most this many windows (evenly spread over the row); raise it
+    to inspect every window of a long row."""
 
     def __post_init__(self) -> None:
         if self.image_width_px < 16 or self.max_windows_shown < 1:
@@ -125,7 +127,7 @@ def centre_panels(inputs: dict, cfg: Config, ctx: StageContext) -> str:
     frames = inputs["frames"].set_index("frame_id", drop=False)
     metrics: pd.DataFrame = inputs["window_metrics"]
     pf = inputs["panoptic_frames"].set_index("frame_id", drop=False)
-    nerf_dir = Path(inputs["nerf"])
+    renders = Renders(inputs["renders"], ctx.data_root)
     ok = metrics[metrics.status == "ok"].sort_values("window_id")
     if len(ok) > cfg.max_windows_shown:
         ok = ok.iloc[np.round(np.linspace(0, len(ok) - 1, cfg.max_windows_shown)).astype(int)]
@@ -141,8 +143,8 @@ def centre_panels(inputs: dict, cfg: Config, ctx: StageContext) -> str:
                                                 read_label(ctx.abspath(fr.det_instance_path), "detector instance")), w))
         else:
             cells.append(None)
-        rgb = render_path(nerf_dir, wid, "rgb", fid)
-        cells.append(scaled(read_rgb(rgb), w) if rgb.is_file() else None)
+        rgb = renders.relpath(wid, fid, "rgb")
+        cells.append(scaled(read_rgb(ctx.abspath(rgb)), w) if rgb else None)
         if fid in pf.index:
             p = pf.loc[fid]
             inst = read_label(ctx.abspath(p.instance_path), "fused instance")
@@ -150,8 +152,8 @@ def centre_panels(inputs: dict, cfg: Config, ctx: StageContext) -> str:
             cells.append(draw_ids(img, inst))
         else:
             cells.append(None)
-        dpath = render_path(nerf_dir, wid, "depth", fid)
-        cells.append(scaled(colour_depth(read_label(dpath, "depth render")), w) if dpath.is_file() else None)
+        dpath = renders.relpath(wid, fid, "depth")
+        cells.append(scaled(colour_depth(read_label(ctx.abspath(dpath), "depth render")), w) if dpath else None)
         tds = "".join(f'<td><img src="{png_data_uri(c)}" alt="{h}"></td>' if c is not None else "<td>(none)</td>"
                       for c, h in zip(cells, heads))
         rows.append(f"<tr><th>window {wid}<br>frame {fid}</th>{tds}</tr>")

@@ -27,27 +27,29 @@ OUTPUTS = ("windows",)
 @dataclass(frozen=True)
 class Config:
     half_width: int = 20
-    """frames on each side of the centre frame (clipped at the sequence ends)."""
+    """frames, >= 1, on each side of the centre frame (clipped at the sequence ends): a window holds up to
+    2 * half_width + 1 frames. Wider windows give each fruit more views and cost more time per fit; the
+    window should span about as far as the camera moves while a fruit crosses the image."""
     max_windows: int = 0
-    """keep at most this many windows, evenly spread (0 = all)."""
+    """keep at most this many windows, evenly spread (0 = all). For quick runs; a subset leaves stretches of
+    the row uncovered, so cover_row is ignored then."""
     unlabelled_spacing: int = 0
-    """when no frame is labelled, centre windows every this many frames (0 = 2 * half_width)."""
+    """frames, >= 0: when no frame is labelled, centre windows every this many frames (0 = 2 * half_width,
+    windows side by side)."""
     cover_row: bool = True
     """extend windows and add filler windows until every frame is in a window and neighbouring windows share
     min_overlap frames (off = windows only around the labelled frames, as in the paper; frames between them
-    are then in no window and their fruits are not counted). Ignored with max_windows (a subset of the
-    windows cannot cover the row)."""
+    are then in no window and their fruits are not counted). Ignored with max_windows."""
     min_overlap: int = 4
-    """frames neighbouring windows share at least (cover_row; at most half_width)."""
+    """frames, >= 0 (at most half_width), that neighbouring windows share at least (cover_row). Shared frames
+    tie the windows' fruit ids and poses together in panoptic_fusion; more overlap costs more fits."""
     context_frames: int = 4
-    """frames beyond each end of a window whose role is training also train it (never validate it): a fruit
-    entering or leaving the view in a window's last or first validation frames is otherwise seen by one or
-    two of its training frames, and the detector often misses it there (cut by the border). Default row: a
-    fruit entering window 1's last frames, detected in one of its two training frames, rendered as plant
-    in the validation frames beside them, while the neighbouring window fitted it from later frames.
-    0 = windows train on their own span only."""
+    """frames, >= 0, beyond each end of a window whose role is training also train it (never validate it): a
+    fruit entering or leaving the view in a window's first or last validation frames is otherwise seen by one
+    or two of its training frames only, where the detector often misses it (cut by the image border). 0 =
+    windows train on their own span only."""
     max_extend: int = 0
-    """frames a window may grow by on each side to close a gap (cover_row; 0 = half_width // 2); longer
+    """frames, >= 0, a window may grow by on each side to close a gap (cover_row; 0 = half_width // 2); longer
     gaps get filler windows."""
 
     def __post_init__(self) -> None:

@@ -40,10 +40,13 @@ def test_every_stage_ran_and_wrote_its_outputs(run_dir):
     assert set(poses["window_id"]) == {0, 1}
     assert (run_dir / metrics["checkpoint_path"].iloc[0]).is_file()
     assert (metrics["panoptic_steps"] == 20).all() and (metrics["n_slots"] > 2).all()
-    renders = run_dir / "processed" / "synth_tiny" / "nerf" / "window_000" / "renders"
-    val = w[(w.window_id == 0) & (w.split == "val")].frame_id
-    for kind in ("rgb", "depth", "semantic", "instance"):
-        assert {int(p.stem.split("_")[1]) for p in renders.glob(f"{kind}_*.png")} == set(val), kind
+    renders = pd.read_parquet(run_dir / "processed" / "synth_tiny" / "renders.parquet")
+    for wid in (0, 1):
+        val = w[(w.window_id == wid) & (w.split == "val")].frame_id
+        for kind in ("rgb", "depth", "semantic", "instance"):
+            listed = renders[(renders.window_id == wid) & (renders.kind == kind)]
+            assert set(listed.frame_id) == set(val) and len(listed) == len(val), (wid, kind)
+            assert all((run_dir / p).is_file() for p in listed.path), (wid, kind)
     processed = run_dir / "processed" / "synth_tiny"
     assert len(pd.read_parquet(processed / "panoptic_frames.parquet")) > 0
     ev = pd.read_parquet(processed / "evaluation.parquet")

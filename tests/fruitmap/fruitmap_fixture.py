@@ -2,8 +2,9 @@
 
 The NeRF stage is slow and its panoptic renders are not what these tests are about, so `fabricate_nerf`
 writes what nerf_fit's contract promises (data/README.md), built from the exact ground truth: per window,
-every validation frame's rgb / depth (mm) / semantic / instance PNGs, with instance ids permuted per
-window (window-local slots), window_poses = the true camera poses, window_metrics all 'ok'.
+every validation frame's rgb / depth (mm) / semantic / instance PNGs listed in renders.parquet, with
+instance ids permuted per window (window-local slots), window_poses = the true camera poses, window_metrics
+all 'ok'.
 """
 from __future__ import annotations
 
@@ -17,7 +18,8 @@ import pyarrow as pa
 
 import schemas
 from pipeline import io
-from pipeline.images import read_label, write_png
+from pipeline.images import read_label
+from rowmap import renders
 from pipeline.runner import Runner
 
 SEQ = "synth_fm"
@@ -49,18 +51,17 @@ SlotHook = Callable[[int, int, np.ndarray, np.ndarray], tuple[np.ndarray, np.nda
 
 
 def fabricate_nerf(row: Row, seed: int = 0, hook: SlotHook | None = None) -> None:
-    """Write window_poses, window_metrics and nerf/window_NNN/renders/ from the ground truth."""
+    """Write window_poses, window_metrics, renders and the render files from the ground truth."""
     rng = np.random.default_rng(seed)
     nerf = row.processed / "nerf"
     shutil.rmtree(nerf, ignore_errors=True)
     frames = row.frames.set_index("frame_id")
     gt = row.gt_poses.set_index("frame_id")
     max_id = int(row.gt_fruits.fruit_id.max())
-    pose_rows, metric_rows = [], []
+    pose_rows, metric_rows, render_rows = [], [], []
     for wid, w in row.windows.groupby("window_id"):
         perm = np.r_[0, rng.permutation(max_id) + 1 + 7 * int(wid)]      # window-local slots, 0 stays stuff
-        rdir = nerf / f"window_{wid:03d}" / "renders"
-        rdir.mkdir(parents=True)
+        (nerf / renders.file_name(wid, "rgb", 0)).parent.mkdir(parents=True)
         for r in w.itertuples(index=False):
             fr = frames.loc[r.frame_id]
             odo = fr[POSE_COLS].to_numpy(np.float64)
@@ -75,11 +76,11 @@ def fabricate_nerf(row: Row, seed: int = 0, hook: SlotHook | None = None) -> Non
             slots = perm[inst]
             if hook is not None:
                 sem, slots = hook(int(wid), int(r.frame_id), sem, slots)
-            name = f"{r.frame_id:06d}.png"
-            shutil.copy(row.root / fr.rgb_path, rdir / f"rgb_{name}")
-            shutil.copy(row.root / fr.depth_path, rdir / f"depth_{name}")
-            write_png(rdir / f"semantic_{name}", sem.astype(np.uint8))
-            write_png(rdir / f"instance_{name}", slots.astype(np.uint16))
+            # the input rgb and depth PNGs are stored as renders are (8-bit colour, 16-bit mm): copied as they are
+            for kind, src in (("rgb", fr.rgb_path), ("depth", fr.depth_path)):
+                shutil.copy(row.root / src, nerf / renders.file_name(wid, kind, r.frame_id))
+            renders.write_frame(nerf, wid, r.frame_id, {"semantic": sem, "instance": slots})
+            render_rows += [(wid, r.frame_id, kind) for kind in renders.KINDS]
         metric_rows.append({"window_id": wid, "center_frame_id": int(w.center_frame_id.iloc[0]), "status": "ok",
                             "error": "", "preset": "cpu", "device": "cpu", "threads": 1,
                             "n_train": int((w.split == "train").sum()), "n_val": int((w.split == "val").sum()),
@@ -90,6 +91,10 @@ def fabricate_nerf(row: Row, seed: int = 0, hook: SlotHook | None = None) -> Non
                    "window_poses")
     io.write_table(complete(pd.DataFrame(metric_rows), "window_metrics"), row.processed / "window_metrics.parquet",
                    "window_metrics")
+    rel = nerf.relative_to(row.root)
+    table = pd.DataFrame([(w, f, k, (rel / renders.file_name(w, k, f)).as_posix()) for w, f, k in render_rows],
+                         columns=["window_id", "frame_id", "kind", "path"])
+    io.write_table(table, row.processed / "renders.parquet", "renders")
 
 
 def complete(df: pd.DataFrame, table: str) -> pd.DataFrame:

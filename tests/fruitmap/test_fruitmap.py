@@ -2,15 +2,19 @@
 ground truth (conftest.py): perfect input must give the ground truth back, perturbed input worse scores."""
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pandas as pd
 import pyarrow.parquet as pq
 import pytest
 
+from nerf.geometry import pose_txyzq
 from pipeline import cli
 from pipeline.classes import THING_IDS
 from pipeline.images import ImageError, read_label
 from pipeline.stage import StageContext
+from rowmap.geometry import surface_centre, window_alignments
 from stages import evaluate, fruit_count, panoptic_fusion, report
 
 from fruitmap_fixture import SEQ, TINY, run_stages
@@ -122,22 +126,33 @@ def test_sphere_centre_does_not_move_with_the_side_a_fruit_is_seen_from():
     left, right = seen_from(np.radians(-130)), seen_from(np.radians(-50))
     assert np.linalg.norm(np.median(left, 0) - np.median(right, 0)) > 0.03
     for pts in (left, right):
-        assert np.linalg.norm(panoptic_fusion.surface_centre(pts, 0.1) - centre) < 0.003
+        assert np.linalg.norm(surface_centre(pts, 0.1) - centre) < 0.003
 
 
-def test_rigid_between_recovers_a_transform_from_a_straight_track():
-    rng = np.random.default_rng(0)
-    src = np.tile(np.eye(4), (6, 1, 1))
-    src[:, 0, 3] = np.linspace(0, 0.5, 6)                     # collinear camera positions
-    src[:, :3, :3] = np.array([[0, 0, 1], [-1, 0, 0], [0, -1, 0]], float)  # looking sideways
-    t = np.eye(4)
-    a, b = rng.normal(size=3), rng.normal(size=3)
+def test_window_alignments_recover_each_windows_transform_from_a_straight_track():
     from scipy.spatial.transform import Rotation
 
-    t[:3, :3] = Rotation.from_rotvec(0.05 * a / np.linalg.norm(a)).as_matrix()
-    t[:3, 3] = 0.03 * b
-    got = panoptic_fusion.rigid_between(src, t @ src)
-    np.testing.assert_allclose(got, t, atol=1e-9)
+    rng = np.random.default_rng(0)
+    track = np.tile(np.eye(4), (9, 1, 1))
+    track[:, 0, 3] = np.linspace(0, 0.8, 9)                   # collinear camera positions along the row
+    track[:, :3, :3] = np.array([[0, 0, 1], [-1, 0, 0], [0, -1, 0]], float)  # looking sideways
+    frames = {0: range(0, 5), 1: range(3, 8), 2: range(6, 9)}  # windows sharing two frames with the previous
+    truth = {0: np.eye(4)}
+    rows = []
+    for wid, fids in frames.items():
+        if wid:
+            t = np.eye(4)
+            a = rng.normal(size=3)
+            t[:3, :3] = Rotation.from_rotvec(0.05 * a / np.linalg.norm(a)).as_matrix()
+            t[:3, 3] = 0.03 * rng.normal(size=3)
+            truth[wid] = t                                     # window frame -> row frame
+        own = np.linalg.inv(truth[wid]) @ track[list(fids)]   # the window's poses in its own frame
+        q = pose_txyzq(own)
+        rows += [{"window_id": wid, "frame_id": f, **dict(zip(["tx", "ty", "tz", "qx", "qy", "qz", "qw"], q[k]))}
+                 for k, f in enumerate(fids)]
+    got = window_alignments(pd.DataFrame(rows))
+    for wid in frames:
+        np.testing.assert_allclose(got[wid], truth[wid], atol=1e-9)
 
 
 def test_split_slots_become_separate_fruits_and_close_slots_never_merge_within_a_window():
@@ -190,13 +205,21 @@ def test_a_sliver_with_a_poor_centre_still_joins_the_fruit_whose_mask_holds_it()
     assert panoptic_fusion.pair_cost(a, too_far, masks, part_of, cfg) == np.inf
 
 
+def drop_renders(row, kinds: tuple[str, ...], window: int | None = None) -> None:
+    """Remove renders of `kinds` (of one window, or all) from disk and from renders.parquet."""
+    table = pd.read_parquet(row.processed / "renders.parquet")
+    gone = table.kind.isin(kinds) & ((table.window_id == window) if window is not None else True)
+    for p in table.path[gone]:
+        (row.root / p).unlink()
+    table[~gone].to_parquet(row.processed / "renders.parquet")
+
+
 def test_failed_and_unrendered_windows_are_skipped_with_a_note(make_row):
     row = make_row()
     m = pd.read_parquet(row.processed / "window_metrics.parquet")
     m.loc[m.window_id == 2, ["status", "error"]] = ["failed", "step 3: non-finite loss"]
     m.to_parquet(row.processed / "window_metrics.parquet")
-    for p in (row.processed / "nerf" / "window_001" / "renders").glob("semantic_*.png"):
-        p.unlink()
+    drop_renders(row, ("semantic", "instance"), window=1)         # window 1 without the panoptic phase
     res = row.runner().run(["panoptic_fusion"], force=True)[0]
     assert res.summary["windows_failed_skipped"] == 1 and res.summary["windows_without_panoptic_renders"] == 1
     assert any("window 2 failed" in n for n in res.summary["notes"])
@@ -206,9 +229,20 @@ def test_failed_and_unrendered_windows_are_skipped_with_a_note(make_row):
 
 def test_a_missing_render_is_an_error_naming_the_file(make_row):
     row = make_row()
-    victim = sorted((row.processed / "nerf" / "window_000" / "renders").glob("instance_*.png"))[1]
-    victim.unlink()
-    with pytest.raises(ImageError, match=victim.name):
+    table = pd.read_parquet(row.processed / "renders.parquet")
+    victim = table[(table.window_id == 0) & (table.kind == "instance")].path.iloc[1]
+    (row.root / victim).unlink()
+    with pytest.raises(ImageError, match=Path(victim).name):
+        row.runner().run(["panoptic_fusion"], force=True)
+
+
+def test_a_render_the_table_does_not_list_is_an_error_naming_window_frame_and_kind(make_row):
+    row = make_row()
+    table = pd.read_parquet(row.processed / "renders.parquet")
+    drop = table[(table.window_id == 0) & (table.kind == "depth")].index[1]
+    frame = int(table.frame_id[drop])
+    table.drop(index=drop).to_parquet(row.processed / "renders.parquet")
+    with pytest.raises(ImageError, match=f"window 0, validation frame {frame}: renders.parquet lists no depth"):
         row.runner().run(["panoptic_fusion"], force=True)
 
 
@@ -408,8 +442,7 @@ def test_report_is_one_self_contained_page_with_every_section(perfect_row):
 
 def test_without_any_panoptic_render_every_stage_still_writes_its_outputs(make_row):
     row = make_row()
-    for p in (row.processed / "nerf").glob("window_*/renders/semantic_*.png"):
-        p.unlink()
+    drop_renders(row, ("semantic", "instance"))                    # what nerf_fit writes without the panoptic phase
     run_stages(row)
     assert pd.read_parquet(row.processed / "panoptic_frames.parquet").empty
     assert pd.read_parquet(row.processed / "fruits.parquet").empty

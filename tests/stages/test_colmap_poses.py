@@ -8,9 +8,10 @@ import pandas as pd
 import pytest
 from scipy.spatial.transform import Rotation
 
-from nerf.geometry import pose_matrix, rotation_angle_deg
+from nerf.geometry import align_similarity, apply_similarity, pose_matrix, rotation_angle_deg
 from pipeline import cli
 from pipeline.stage import StageContext
+from rowmap.window_data import initial_poses
 from schemas import validate
 from stages import colmap_poses as cp
 from stages import nerf_fit
@@ -28,7 +29,7 @@ def row_poses(n=8, seed=0, spacing_m=0.1) -> np.ndarray:
 
 
 def similarity(c2w, s, r, t):
-    return cp.apply_similarity(s, r, t, c2w)
+    return apply_similarity(s, r, t, c2w)
 
 
 def test_alignment_recovers_a_similarity_from_collinear_cameras_thanks_to_orientations():
@@ -37,13 +38,13 @@ def test_alignment_recovers_a_similarity_from_collinear_cameras_thanks_to_orient
     # the "COLMAP" frame: odo = s R col + t  <=>  col = R^T (odo - t) / s
     s, t = 0.02, np.array([0.3, -1.0, 2.0])
     col = similarity(odo, 1 / s, r.T, -r.T @ t / s)
-    s_hat, r_hat, t_hat = cp.align_similarity(col[:, :3, 3], odo[:, :3, 3], col[:, :3, :3], odo[:, :3, :3])
+    s_hat, r_hat, t_hat = align_similarity(col[:, :3, 3], odo[:, :3, 3], col[:, :3, :3], odo[:, :3, :3])
     assert s_hat == pytest.approx(s, rel=1e-9)
     assert np.allclose(r_hat, r, atol=1e-9) and np.allclose(t_hat, t, atol=1e-9)
     back = similarity(col, s_hat, r_hat, t_hat)
     assert np.allclose(back, odo, atol=1e-9)
     # Umeyama on the centres alone (weight 0): the roll about the (almost) straight row is a guess
-    s0, r0, t0 = cp.align_similarity(col[:, :3, 3], odo[:, :3, 3], orientation_weight=0.0)
+    s0, r0, t0 = align_similarity(col[:, :3, 3], odo[:, :3, 3], orientation_weight=0.0)
     assert np.allclose(similarity(col, s0, r0, t0)[:, :3, 3], odo[:, :3, 3], atol=1e-3)
     assert rotation_angle_deg(r0, r) > 1.0
 
@@ -51,9 +52,9 @@ def test_alignment_recovers_a_similarity_from_collinear_cameras_thanks_to_orient
 def test_alignment_rejects_degenerate_input():
     p = np.zeros((4, 3))
     with pytest.raises(ValueError, match="coincide"):
-        cp.align_similarity(p, p + 1)
+        align_similarity(p, p + 1)
     with pytest.raises(ValueError, match="N >= 2"):
-        cp.align_similarity(np.zeros((1, 3)), np.zeros((1, 3)))
+        align_similarity(np.zeros((1, 3)), np.zeros((1, 3)))
 
 
 def test_window_alignment_falls_back_per_frame_and_per_window():
@@ -93,16 +94,16 @@ def test_bad_config_is_a_clear_error():
 
 def test_nerf_fit_initial_poses_from_colmap_and_clear_errors():
     w = pd.DataFrame({"frame_id": [3, 4], **{c: [0.0, 1.0] for c in cp.POSE_COLS}})
-    same = nerf_fit.initial_poses(w, 0, None, "odometry")
+    same = initial_poses(w, 0, None, "odometry")
     assert same["pose_source"].tolist() == ["odometry"] * 2
     with pytest.raises(ValueError, match="colmap_poses.parquet is missing; run `pag colmap_poses"):
-        nerf_fit.initial_poses(w, 0, None, "colmap")
+        initial_poses(w, 0, None, "colmap")
     col = pd.DataFrame({"window_id": [0, 0], "frame_id": [4, 3], "source": ["colmap", "odometry"],
                         **{c: [5.0, 1.0] for c in cp.POSE_COLS}})
-    got = nerf_fit.initial_poses(w, 0, col, "colmap")
+    got = initial_poses(w, 0, col, "colmap")
     assert got["tx"].tolist() == [1.0, 5.0] and got["pose_source"].tolist() == ["odometry", "colmap"]
     with pytest.raises(ValueError, match="no pose for window 1"):
-        nerf_fit.initial_poses(w, 1, col, "colmap")
+        initial_poses(w, 1, col, "colmap")
 
 
 # -- COLMAP on a synthetic row ----------------------------------------------------------------------
@@ -176,17 +177,25 @@ def test_nerf_fit_hands_its_windows_the_colmap_poses(colmap_row, tmp_path, monke
 
 def test_compare_bench_runs_colmap_itself_when_the_table_lacks_the_window(colmap_row, tmp_path):
     from bench.compare import colmap_window
-    interim = colmap_row / "interim" / "synth_colmap"
+    seq = "synth_colmap"
+    interim = colmap_row / "interim" / seq
     frames, windows = pd.read_parquet(interim / "frames.parquet"), pd.read_parquet(interim / "windows.parquet")
     w = windows[windows.window_id == 1].merge(frames, on="frame_id")
     kept = w.iloc[::2].reset_index(drop=True)
-    from_table, note = colmap_window(interim, w, kept, 1, colmap_row)
+    from_table, note = colmap_window(seq, colmap_row, windows, kept, 1)
     assert note == "" and (from_table["pose_source"] == "colmap").any()
-    bare = tmp_path / "interim"  # no colmap_poses.parquet here: the bench reconstructs window 1 itself
-    bare.mkdir()
-    own, note = colmap_window(bare, w, kept, 1, colmap_row)
+    # a data/ whose colmap_poses table lacks window 1: the bench runs the stage on that window itself
+    bare = tmp_path / "data"
+    for rel in (f"raw/{seq}", f"interim/{seq}/images", f"interim/{seq}/frames.parquet", f"interim/{seq}/windows.parquet"):
+        (bare / rel).parent.mkdir(parents=True, exist_ok=True)
+        (bare / rel).symlink_to(colmap_row / rel)
+    table = pd.read_parquet(interim / "colmap_poses.parquet")
+    table[table.window_id != 1].to_parquet(bare / "interim" / seq / "colmap_poses.parquet")
+    own, note = colmap_window(seq, bare, windows, kept, 1)
     assert note.startswith("COLMAP run by the bench") and len(own) == len(kept)
     assert (own["frame_id"].to_numpy() == kept["frame_id"].to_numpy()).all()
+    assert not (bare / "interim" / seq / "colmap_poses.parquet").is_symlink()
+    assert len(pd.read_parquet(bare / "interim" / seq / "colmap_poses.parquet")) == len(table[table.window_id != 1])
     reg = (own["pose_source"] == "colmap").to_numpy() & (from_table["pose_source"] == "colmap").to_numpy()
     assert reg.sum() >= len(kept) // 2
     # the same images and settings (but all cores here): both land within a centimetre of each other

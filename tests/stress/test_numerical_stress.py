@@ -1,23 +1,31 @@
-"""The numerical stress suite at its fast size (`pag bench stress` runs the same cases larger): every case's
-checks pass, i.e. outputs and gradients stay finite and valid, bad inputs are refused clearly, and the fused
-encoding kernel agrees with the pure-torch reference."""
+"""The numerical stress suite at its fast size (`pag bench stress` runs the same case functions larger): every
+case's checks pass, i.e. outputs and gradients stay finite and valid, bad inputs are refused clearly, and the
+fused encoding kernel agrees with the pure-torch reference."""
 import math
 
 import pytest
 import torch
+from stress_cases import CASES, SIZES
 
 from bench import stress
 from nerf.panoptic_losses import instance_loss
 from nerf.poses import rotation_6d
 from nerf.render import composite_weights, cone_steps, depth_guided, exclusive_cumsum_per_ray
 
+DEVICES = ["cpu", pytest.param("cuda", marks=pytest.mark.skipif(not torch.cuda.is_available(), reason="no GPU"))]
 
-@pytest.mark.parametrize("case", list(stress.CASES))
-def test_stress_case(case):
-    checks = stress.run_case(case, stress.SIZES["fast"])
+
+@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("case", list(CASES))
+def test_stress_case(case, device):
+    checks = CASES[case](SIZES["fast"], device)
     assert checks, f"case {case} made no check"
     failed = [f"{c.component}: {c.detail}" for c in checks if not c.passed]
     assert not failed, "\n".join(failed)
+
+
+def test_the_bench_runs_the_same_case_functions():
+    assert stress.CASES == CASES
 
 
 def test_bench_writes_the_table(tmp_path, monkeypatch):

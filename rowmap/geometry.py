@@ -1,0 +1,57 @@
+"""Fruit geometry across windows: the row frame the windows are brought into, the centre of a fruit from
+its seen surface, and an even subsample of points."""
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+
+from nerf.geometry import align_similarity, pose_matrix, similarity_matrix
+from nerf.surfaces import fit_sphere, plausible_fit, principal_extents, robust_centre
+
+POSE_COLS = ("tx", "ty", "tz", "qx", "qy", "qz", "qw")
+"""camera-to-world pose columns of the pose tables (position in m, rotation quaternion)."""
+
+
+def window_alignments(window_poses: pd.DataFrame) -> dict[int, np.ndarray]:
+    """Per window, the transform [4, 4] from its own (refined) frame into the row frame: the first window's
+    frame, each later window joined to the nearest earlier one it shares frames with. The join is the rigid
+    transform between the shared frames' poses (as already aligned): the chordal mean rotation of their
+    orientations (which pin the roll about the row that a straight, nearly collinear track of positions
+    leaves free) and the mean position offset. A window sharing no frame keeps the previous one's transform."""
+    poses = {int(w): dict(zip(g.frame_id.astype(int), pose_matrix(g[list(POSE_COLS)].to_numpy(np.float64))))
+             for w, g in window_poses.groupby("window_id")}
+    out: dict[int, np.ndarray] = {}
+    done: list[int] = []
+    for wid in sorted(poses):
+        t = out[done[-1]] if done else np.eye(4)
+        for prev in reversed(done):
+            shared = sorted(set(poses[wid]) & set(poses[prev]))
+            if shared:
+                src = np.stack([poses[wid][f] for f in shared])
+                dst = out[prev] @ np.stack([poses[prev][f] for f in shared])
+                s, r, tr = align_similarity(src[:, :3, 3], dst[:, :3, 3], src[:, :3, :3], dst[:, :3, :3],
+                                            with_scale=False, position_weight=0.0, orientation_weight=1.0)
+                t = similarity_matrix(s, r, tr)
+                break
+        out[wid] = t
+        done.append(wid)
+    return out
+
+
+def surface_centre(points: np.ndarray, max_radius_m: float, min_points: int = 20,
+                   max_extent_ratio: float = 2.0) -> np.ndarray:
+    """Centre of a fruit from world points [N, 3] of its seen surface: the centre of a least-squares sphere
+    through the inliers of robust_centre where that fit is plausible (plausible_fit), else their median.
+    The median of a seen surface sits on the side facing the camera, so two windows that saw one fruit
+    from either side put medians several centimetres apart; the sphere centre does not move with the view."""
+    med, keep = robust_centre(points)
+    inl = points[keep]
+    if len(inl) < max(min_points, 4):
+        return med
+    c, r = fit_sphere(inl)
+    return c if plausible_fit(c, r, med, principal_extents(inl)[0], max_radius_m, max_extent_ratio) else med
+
+
+def subsample(n: int, cap: int) -> np.ndarray:
+    """Evenly spaced indices of at most `cap` of n items (deterministic). Example: subsample(5, 3) -> [0, 2, 4]."""
+    return np.arange(n) if n <= cap else np.round(np.linspace(0, n - 1, cap)).astype(np.int64)
