@@ -190,6 +190,8 @@ def fit_one(payload: dict) -> dict:
                          progress=lambda s, n, info: parallel.report(key, s, n, **info))
     except Exception as err:
         raise RuntimeError(f"window {wid}: {err}") from err
+    if not payload["panoptic"].enabled:  # else colour and panoptic are rendered in one pass below
+        validate(res, data, reporting_render(key, res.model.render_image, data.is_train, "validation render"))
     name = f"window_{wid:03d}"
     resume = Path(payload["resume_dir"]) if payload.get("resume_dir") else None
     # with a resume folder the window is built under a temp name there and renamed into place when complete
@@ -216,8 +218,6 @@ def fit_one(payload: dict) -> dict:
         parallel.report(key, 0, 1, phase="instance completion")
         complete_instances([res.renders[i] for i in val], data.intrinsics[val], res.poses_c2w[val], pan.cfg)
         parallel.report(key, 1, 1, phase="instance completion")
-    else:
-        validate(res, data, reporting_render(key, res.model.render_image, data.is_train, "validation render"))
     torch.save(state, wdir / "checkpoint.pt")
     for i in np.flatnonzero(~data.is_train):
         out = res.renders[int(i)]
