@@ -28,7 +28,7 @@ def _common(p: argparse.ArgumentParser) -> None:
                    help="override a config value, e.g. --set synth.seed=3 (repeatable)")
     p.add_argument("--data-root", type=Path, default=Path("data"), help="data folder (default: ./data)")
     p.add_argument("--force", action="store_true", help="rerun even if inputs and config are unchanged")
-    p.add_argument("--no-progress", action="store_true", help="hide progress bars")
+    p.add_argument("--no-progress", action="store_true", help="hide progress (bars on a terminal, lines in a log)")
     p.add_argument("--scheduler", default=None, metavar="ADDRESS",
                    help="dask.distributed scheduler address for nerf_fit (default: a local cluster)")
     p.add_argument("--debug", action="store_true", help="show tracebacks")

@@ -32,7 +32,16 @@ class RunConfig:
     scheduler: str = ""
     """dask.distributed scheduler address for nerf_fit ('' = start a local cluster)."""
     progress: bool = True
-    """show progress bars."""
+    """show progress on stderr: bars on an interactive terminal, plain lines (one per unit of work, no
+    carriage returns) when stderr is a pipe or a file; false = quiet (`--no-progress`)."""
+    progress_interval_s: float = 2.0
+    """when stderr is not a terminal, the least seconds between two progress lines of one task (the first
+    and last unit of each phase always get a line); 0 = a line for every unit of work. Raise it for
+    shorter logs of long rows."""
+
+    def __post_init__(self) -> None:
+        if not self.progress_interval_s >= 0:
+            raise ConfigError(f"run.progress_interval_s must be >= 0 seconds, got {self.progress_interval_s}")
 
 
 def _coerce(value: Any, tp: Any, where: str) -> Any:

@@ -4,6 +4,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import re
 import shutil
 from pathlib import Path
 
@@ -23,6 +24,16 @@ def fsync_dir(path: Path) -> None:
         os.fsync(fd)
     finally:
         os.close(fd)
+
+
+def fsync_tree(path: Path) -> None:
+    """fsync every file and folder under `path` (before renaming it into place as a completion marker)."""
+    for p in sorted(path.rglob("*")):
+        if p.is_file():
+            with open(p, "rb") as fh:
+                os.fsync(fh.fileno())
+    for d in [path, *(p for p in path.rglob("*") if p.is_dir())]:
+        fsync_dir(d)
 
 
 def atomic_write_bytes(path: Path, data: bytes) -> None:
@@ -100,6 +111,34 @@ def staging_dir(final: Path) -> Path:
         shutil.rmtree(path)
     path.mkdir(parents=True)
     return path
+
+
+LEFTOVER = re.compile(r"^\..+\.(tmp|staging|old)-(\d+)$")
+"""Names of the temp files (atomic_write_bytes) and folders (staging_dir, swap_dir) a run makes."""
+
+
+def remove_leftovers(roots: list[Path], prefix: str = ".", recursive: bool = True) -> int:
+    """Delete temp files and staging/swap folders under `roots` that other processes made (call with the
+    row lock held: any such process is gone). Returns how many were removed."""
+    n = 0
+    for root in roots:
+        if not root.is_dir():
+            continue
+        for parent, dirs, files in os.walk(root):
+            for name in list(dirs) + files:
+                m = LEFTOVER.match(name)
+                if not m or not name.startswith(prefix) or int(m.group(2)) == os.getpid():
+                    continue
+                path = Path(parent) / name
+                if path.is_dir() and not path.is_symlink():
+                    shutil.rmtree(path, ignore_errors=True)
+                    dirs.remove(name)
+                else:
+                    path.unlink(missing_ok=True)
+                n += 1
+            if not recursive:
+                break
+    return n
 
 
 class HashCache:

@@ -1,7 +1,9 @@
 """Run independent tasks (one per NeRF window) on a dask.distributed cluster with live progress.
 
-Tasks report progress by calling `report(task_key, done, total, **info)` inside the worker, which puts
-a message on a distributed Queue; the caller's process drains it into one progress bar per task.
+Tasks report progress by calling `report(task_key, done, total, phase=..., **info)` inside the worker,
+which puts a message on a distributed Queue; the caller's process drains it into one progress tracker
+per task (pipeline/progress.py: a bar on a terminal, lines in a log), so progress made inside worker
+processes reaches the user's stderr.
 A task that raises does not stop the others: its exception is returned in its slot.
 """
 from __future__ import annotations
@@ -15,7 +17,7 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from typing import Any
 
-from tqdm.auto import tqdm
+from pipeline import progress
 
 
 @dataclass
@@ -101,8 +103,10 @@ def client_for(scheduler: str | None, n_workers: int, threads_per_worker: int) -
 
 
 def map_tasks(fn: Callable[[Any], Any], payloads: dict[str, Any], n_workers: int = 0, threads_per_worker: int = 0,
-              scheduler: str | None = None, show_progress: bool = True, desc: str = "task") -> dict[str, TaskOutcome]:
-    """Run fn(payload) for every payload; returns outcomes by key. One task per worker at a time."""
+              scheduler: str | None = None, show_progress: bool = True, desc: str = "task",
+              label: str | None = None, progress_interval_s: float = 2.0) -> dict[str, TaskOutcome]:
+    """Run fn(payload) for every payload; returns outcomes by key. One task per worker at a time.
+    Progress of task k is shown as f"{label or desc} {k}"."""
     from distributed import Queue, as_completed
 
     n_workers = n_workers or default_workers(len(payloads))
@@ -113,20 +117,19 @@ def map_tasks(fn: Callable[[Any], Any], payloads: dict[str, Any], n_workers: int
         queue = Queue(queue_name, client=client)
         futures = {client.submit(_run_task, fn, p, queue_name, threads, key=f"{desc}-{k}-{uuid.uuid4().hex[:6]}",
                                  pure=False): k for k, p in payloads.items()}
-        bars = {k: tqdm(total=1, desc=f"{desc} {k}", position=i, leave=False, disable=not show_progress,
-                        dynamic_ncols=True) for i, k in enumerate(payloads)}
+        bars = {k: progress.Tracker(f"{label or desc} {k}", None, enabled=show_progress, interval_s=progress_interval_s,
+                                    position=i) for i, k in enumerate(payloads)}
 
         def drain() -> None:
-            with contextlib.suppress(Exception):
-                for key, done, total, info in queue.get(batch=True):
-                    bar = bars.get(key)
-                    if bar is not None:
-                        bar.total = total
-                        bar.n = done
-                        if info:
-                            bar.set_postfix({k: (f"{v:.3g}" if isinstance(v, float) else v) for k, v in info.items()},
-                                            refresh=False)
-                        bar.refresh()
+            try:
+                messages = queue.get(batch=True)
+            except Exception:  # progress must never break the run
+                return
+            for key, done, total, info in messages:
+                bar = bars.get(key)
+                if bar is not None:
+                    info = dict(info)
+                    bar.update(done, total, str(info.pop("phase", "step")), info)
 
         pending = as_completed(list(futures))
         while True:
@@ -139,11 +142,14 @@ def map_tasks(fn: Callable[[Any], Any], payloads: dict[str, Any], n_workers: int
                     outcomes[key] = TaskOutcome(key, result=result, seconds=seconds)
                 except Exception as err:  # keep going: the other tasks finish
                     outcomes[key] = TaskOutcome(key, error=err)
-                bars[key].close()
+                drain()  # the task's last messages before its end line
+                o = outcomes[key]
+                bars[key].finish(f"done in {o.seconds:.1f} s" if o.error is None else
+                                 f"failed: {str(o.error).splitlines()[0] if str(o.error) else type(o.error).__name__}")
             if pending.is_empty() and len(outcomes) == len(futures):
                 break
             time.sleep(0.3)
         drain()
         for bar in bars.values():
-            bar.close()
+            bar.finish()
     return outcomes

@@ -4,6 +4,7 @@ writes its outputs atomically, and skips stages whose code, config and inputs ar
 """
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import importlib
 import json
@@ -21,10 +22,15 @@ import yaml
 from pipeline import config as cfgmod
 from pipeline import codehash, dag, io, provenance
 from pipeline.catalog import DATASETS, dataset
+from pipeline.lock import RowLock
 from pipeline.stage import StageContext
 
 log = logging.getLogger("pag")
 REPO_ROOT = Path(__file__).resolve().parents[1]
+
+
+RUN_KEYS_WITHOUT_EFFECT = ("progress", "progress_interval_s")
+"""Settings of section `run` that change what is shown, not what is computed (not part of a stage's key)."""
 
 
 class PipelineError(RuntimeError):
@@ -66,7 +72,9 @@ class Runner:
                           or (self.raw_dir / "gt" / "synth_config.yaml").is_file())
         self.show_progress = self.config["run"].progress if show_progress is None else show_progress
         self.manifest_dir = self.data_root / "interim" / seq / "_manifest"
+        self.resume_root = self.data_root / "interim" / seq / "_resume"
         self.hashes = io.HashCache(self.manifest_dir / "hashcache.json")
+        self.lock = RowLock(self.data_root, seq)
 
     @property
     def raw_dir(self) -> Path:
@@ -105,12 +113,22 @@ class Runner:
         else:
             chosen = active
         self.check_raw(chosen)
-        self.write_resolved_config()
-        results = []
-        for s in chosen:
-            results.append(self.run_stage(s, force=force))
-        self.hashes.save()
+        with self.lock:  # one run per row; released by the kernel if this process is killed
+            self.remove_leftovers()
+            self.write_resolved_config()
+            results = []
+            for s in chosen:
+                results.append(self.run_stage(s, force=force))
+            self.hashes.save()
         return results
+
+    def remove_leftovers(self) -> None:
+        """Delete temp files, staging and swap folders a killed run of this row left behind (the row lock
+        is held, so no other live process is writing them)."""
+        n = io.remove_leftovers([self.data_root / "interim" / self.seq, self.data_root / "processed" / self.seq])
+        n += io.remove_leftovers([self.raw_dir.parent], prefix=f".{self.seq}.", recursive=False)
+        if n:
+            print(f"[pag] removed {n} temp file(s)/folder(s) left by an interrupted run", file=sys.stderr)
 
     def check_raw(self, chosen: list[dag.Stage]) -> None:
         needs_raw = any("raw" in s.inputs for s in chosen)
@@ -137,8 +155,9 @@ class Runner:
                 how = f"run `pag {producer} --seq {self.seq}` first (or `pag all`)" if producer else "see data/README.md"
                 raise PipelineError(f"stage {s.name!r} needs {name!r} ({path}), which does not exist; {how}")
             input_hashes[name] = self.hashes.tree_hash(path)
+        run_cfg = {k: v for k, v in cfgmod.to_dict(self.config["run"]).items() if k not in RUN_KEYS_WITHOUT_EFFECT}
         payload = json.dumps({"code": code_hash(s), "config": cfgmod.to_dict(self.config[s.name]),
-                              "run": cfgmod.to_dict(self.config["run"]) if s.name == "nerf_fit" else None,
+                              "run": run_cfg if s.name == "nerf_fit" else None,
                               "inputs": input_hashes, "seq": self.seq}, sort_keys=True, default=str)
         return hashlib.blake2b(payload.encode(), digest_size=16).hexdigest(), input_hashes
 
@@ -171,9 +190,14 @@ class Runner:
             inputs[name] = io.read_table(path, ds.schema) if ds.kind == "table" else path
         staging = {o: io.staging_dir(self._input_path(o)) for o in s.outputs if dataset(o).kind == "dir"}
         run_cfg = self.config["run"]
+        resume = self.resume_root / s.name
+        if resume.is_dir():  # finished work of an interrupted run with other code, config or inputs
+            for old in resume.iterdir():
+                if old.name != key:
+                    shutil.rmtree(old, ignore_errors=True)
         ctx = StageContext(stage=s.name, seq=self.seq, data_root=self.data_root, staging=staging,
-                           show_progress=self.show_progress, device=run_cfg.device,
-                           scheduler=run_cfg.scheduler or None)
+                           show_progress=self.show_progress, progress_interval_s=run_cfg.progress_interval_s,
+                           device=run_cfg.device, scheduler=run_cfg.scheduler or None, resume_dir=resume / key)
         print(f"[pag] {s.name}: running", file=sys.stderr)
         t0 = time.perf_counter()
         try:
@@ -201,6 +225,9 @@ class Runner:
                   "finished_unix": time.time(), "code_version": provenance.code_version()}
         io.atomic_write_bytes(self.manifest_path(s), json.dumps(record, indent=1, default=str).encode())
         self.hashes.save()
+        shutil.rmtree(resume, ignore_errors=True)  # the outputs are committed: partial work is not needed
+        with contextlib.suppress(OSError):
+            self.resume_root.rmdir()  # only when empty
         brief = ", ".join(f"{k}={v}" for k, v in ctx.summary.items() if k != "notes")
         print(f"[pag] {s.name}: done in {seconds:.1f} s" + (f" ({brief})" if brief else ""), file=sys.stderr)
         for note in ctx.summary.get("notes", []):

@@ -16,8 +16,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TypeVar
 
-from tqdm.auto import tqdm
-
+from pipeline import progress as progressmod
 from pipeline.catalog import dataset
 
 T = TypeVar("T")
@@ -35,9 +34,17 @@ class StageContext:
     summary: dict[str, Any] = field(default_factory=dict)
     """Counts and notes the stage reports (skips, drops); printed and stored by the runner."""
     show_progress: bool = True
+    progress_interval_s: float = 2.0
+    """Least seconds between two progress lines of one task when stderr is not a terminal."""
     device: str = "cpu"
     scheduler: str | None = None
     """dask.distributed scheduler address, or None for a local cluster."""
+    resume_dir: Path | None = None
+    """A folder for finished units of work (e.g. one NeRF window) that must survive a killed run. The
+    runner names it by the stage's key (code, config and input hashes), so what a stage finds there was
+    made from exactly the same code, config and inputs; it deletes folders of other keys when the stage
+    starts and this one once the stage's outputs are committed. A stage writes each unit atomically
+    (build it under a temp name, rename it into place last) and reuses what it finds. Created on demand."""
 
     def output_dir(self, name: str) -> Path:
         if name not in self.staging:
@@ -57,8 +64,9 @@ class StageContext:
         return dataset("raw").path(self.data_root, self.seq)
 
     def progress(self, it: Iterable[T], desc: str, total: int | None = None) -> Iterator[T]:
-        return iter(tqdm(it, desc=f"{self.stage}: {desc}", total=total, disable=not self.show_progress,
-                         leave=False, dynamic_ncols=True))
+        """Iterate with progress on stderr (pipeline/progress.py: a bar on a terminal, else lines)."""
+        return progressmod.iterate(it, self.stage, total, enabled=self.show_progress,
+                                   interval_s=self.progress_interval_s, unit=desc)
 
     def count(self, key: str, n: int = 1) -> None:
         """Add to a counter in the stage summary (e.g. skipped frames by reason)."""

@@ -1,7 +1,12 @@
 """Fit one NeRF per window (Dask, one task per window) with online pose refinement; render validation frames."""
 from __future__ import annotations
 
+import hashlib
+import json
 import os
+import pickle
+import shutil
+import time
 import traceback
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -15,7 +20,7 @@ from nerf.config import NerfConfig, preset
 from nerf.depth_poses import DepthPoses, depth_initial_poses
 from nerf.panoptic_fit import PanopticConfig
 from nerf.geometry import pose_txyzq, rotation_angle_deg
-from pipeline import parallel
+from pipeline import io, parallel, progress
 from pipeline.stage import StageContext
 from rowmap import renders as render_files
 from rowmap.window_data import initial_poses, load_labels, load_window, window_detections
@@ -98,16 +103,28 @@ def fit_one(payload: dict) -> dict:
 
     wid, out_dir, data_root = payload["window_id"], Path(payload["out_dir"]), Path(payload["data_root"])
     frames = pd.DataFrame(payload["frames"])
-    data = load_window(frames, data_root)
     key = str(wid)
+    parallel.report(key, 0, len(frames), phase="load frames")
+    data = load_window(frames, data_root)
     odometry = data.poses_c2w
+    parallel.report(key, 0, 1, phase="depth poses")
     data.poses_c2w, depth_info = depth_initial_poses(payload["depth_poses"], data.depths, data.intrinsics, odometry)
+    parallel.report(key, 1, 1, phase="depth poses")
     try:
-        res = fit_window(data, payload["cfg"], device=payload["device"], render_val=not payload["panoptic"].enabled,
+        res = fit_window(data, payload["cfg"], device=payload["device"], render_val=False,
                          progress=lambda s, n, info: parallel.report(key, s, n, **info))
     except Exception as err:
         raise RuntimeError(f"window {wid}: {err}") from err
-    wdir = out_dir / f"window_{wid:03d}"
+    if not payload["panoptic"].enabled:  # else colour and panoptic are rendered in one pass below
+        validate(res, data, reporting_render(key, res.model.render_image, data.is_train, "validation render"))
+    name = f"window_{wid:03d}"
+    resume = Path(payload["resume_dir"]) if payload.get("resume_dir") else None
+    # with a resume folder the window is built under a temp name there and renamed into place when complete
+    # (inside a temp folder whose name the run's leftover cleanup knows); the renders' table rows name the
+    # files relative to the nerf folder either way
+    wdir = resume / f".{name}.tmp-{os.getpid()}" / name if resume else out_dir / name
+    if resume:
+        shutil.rmtree(wdir.parent, ignore_errors=True)
     (wdir / "renders").mkdir(parents=True, exist_ok=True)
     state = res.model.state()
     pan = None
@@ -118,19 +135,22 @@ def fit_one(payload: dict) -> dict:
         labels = load_labels(frames, pd.DataFrame(payload["detections"]) if payload["detections"] else None, data_root)
         try:
             pan = fit_panoptic(res.model, labels, data.is_train, data.depths, pcfg, seed=payload["cfg"].seed,
-                               progress=lambda s, n, info: parallel.report(key, s, n, phase="panoptic", **info))
+                               progress=lambda s, n, info: parallel.report(key, s, n, phase="panoptic step", **info))
         except Exception as err:
             raise RuntimeError(f"window {wid} (panoptic phase): {err}") from err
         state["panoptic"] = pan.state()
-        validate(res, data, lambda i: render_panoptic(res.model, pan, i))
+        validate(res, data, reporting_render(key, lambda i: render_panoptic(res.model, pan, i), data.is_train,
+                                             "panoptic validation render"))
         val = [int(i) for i in np.flatnonzero(~data.is_train)]
+        parallel.report(key, 0, 1, phase="instance completion")
         complete_instances([res.renders[i] for i in val], data.intrinsics[val], res.poses_c2w[val], pan.cfg)
+        parallel.report(key, 1, 1, phase="instance completion")
     torch.save(state, wdir / "checkpoint.pt")
     kinds = render_files.KINDS if pan is not None else ("rgb", "depth")
     render_rows = []
     for i in np.flatnonzero(~data.is_train):
         out = res.renders[int(i)]
-        render_rows += render_files.write_frame(out_dir, wid, int(data.frame_ids[i]), {k: out[k] for k in kinds})
+        render_rows += render_files.write_frame(wdir.parent, wid, int(data.frame_ids[i]), {k: out[k] for k in kinds})
     init = odometry
     final = res.poses_c2w
     dt = np.linalg.norm(final[:, :3, 3] - init[:, :3, 3], axis=1)
@@ -153,7 +173,70 @@ def fit_one(payload: dict) -> dict:
                "id_window_width": pan.slot_window.width if pan and pan.slot_window else 0,
                **depth_info,
                "checkpoint": f"window_{wid:03d}/checkpoint.pt"}
-    return {"poses": poses.to_dict("list"), "metrics": metrics, "renders": render_rows}
+    result = {"poses": poses.to_dict("list"), "metrics": metrics, "renders": render_rows}
+    if resume:
+        with open(wdir / FINISHED, "wb") as fh:
+            pickle.dump({"digest": payload["digest"], "result": result}, fh)
+        io.fsync_tree(wdir)
+        shutil.rmtree(resume / name, ignore_errors=True)
+        os.replace(wdir, resume / name)  # the window is complete once it has its final name
+        io.fsync_dir(resume)
+        shutil.rmtree(wdir.parent, ignore_errors=True)
+    return result
+
+
+FINISHED = "finished.pkl"
+"""In a finished window's resume folder: the payload digest and the window's table rows."""
+
+
+def reporting_render(key: str, render, is_train: np.ndarray, what: str):
+    """`render(i)` that reports each finished validation frame as progress of task `key`."""
+    n = int((~is_train).sum())
+    done = [0]
+
+    def wrapped(i: int) -> dict:
+        if done[0] == 0:
+            parallel.report(key, 0, n, phase=what)
+        t0 = time.perf_counter()
+        out = render(i)
+        done[0] += 1
+        parallel.report(key, done[0], n, phase=what, frame_s=round(time.perf_counter() - t0, 2))
+        return out
+
+    return wrapped
+
+
+def payload_digest(payload: dict) -> str:
+    """Hash of what a window's fit depends on (its frames, initial poses, detections and settings)."""
+    keep = {k: v for k, v in payload.items() if k not in ("out_dir", "resume_dir", "digest")}
+    text = json.dumps(keep, sort_keys=True, default=repr)
+    return hashlib.blake2b(text.encode(), digest_size=16).hexdigest()
+
+
+def finished_window(folder: Path, digest: str) -> dict | None:
+    """The table rows of a window an earlier (interrupted) run finished in `folder`, or None."""
+    marker = folder / FINISHED
+    if not marker.is_file():
+        return None
+    try:
+        with open(marker, "rb") as fh:
+            done = pickle.load(fh)
+    except (OSError, EOFError, pickle.UnpicklingError, AttributeError, ImportError):
+        return None
+    return done["result"] if isinstance(done, dict) and done.get("digest") == digest else None
+
+
+def link_tree(src: Path, dst: Path, skip: tuple[str, ...] = ()) -> None:
+    """Hard-link (or copy, across file systems) every file of `src` into `dst`."""
+    for p in sorted(src.rglob("*")):
+        if p.is_dir() or p.name in skip:
+            continue
+        target = dst / p.relative_to(src)
+        target.parent.mkdir(parents=True, exist_ok=True)
+        try:
+            os.link(p, target)
+        except OSError:
+            shutil.copy2(p, target)
 
 
 def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]:
@@ -176,13 +259,35 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
         w = initial_poses(w, int(wid), colmap, cfg.pose_source)
         payloads[str(wid)] = window_payload(int(wid), w, cfg, mcfg, ctx.device, out_dir, ctx.data_root,
                                             window_detections(dets, w))
+    # workers and threads follow the whole row, also when some windows are reused: a window's fit is then
+    # computed with the same thread count as in an uninterrupted run
     n_workers = cfg.workers or parallel.default_workers(len(payloads))
     threads = cfg.threads_per_worker or max(1, (os.cpu_count() or 1) // n_workers)
-    outcomes = parallel.map_tasks(fit_one, payloads, n_workers=n_workers, threads_per_worker=threads,
-                                  scheduler=ctx.scheduler, show_progress=ctx.show_progress, desc="window")
+    resume = ctx.resume_dir.resolve() if ctx.resume_dir is not None else None
+    outcomes: dict[str, parallel.TaskOutcome] = {}
+    if resume is not None:
+        resume.mkdir(parents=True, exist_ok=True)
+        for key, p in payloads.items():
+            p["digest"], p["resume_dir"] = payload_digest(p), str(resume)
+            done = finished_window(resume / f"window_{int(key):03d}", p["digest"])
+            if done is not None:
+                outcomes[key] = parallel.TaskOutcome(key, result=done)
+                ctx.count("windows_reused")
+                if ctx.show_progress:
+                    progress.say(f"nerf_fit window {key}: reused (finished by an interrupted run of the same "
+                                 f"code, config and inputs)")
+    todo = {k: p for k, p in payloads.items() if k not in outcomes}
+    if todo:
+        outcomes.update(parallel.map_tasks(fit_one, todo, n_workers=min(n_workers, len(todo)),
+                                           threads_per_worker=threads, scheduler=ctx.scheduler,
+                                           show_progress=ctx.show_progress, desc="window", label="nerf_fit window",
+                                           progress_interval_s=ctx.progress_interval_s))
     pose_tables, metric_rows, render_rows = [], [], []
     for key in payloads:
         o = outcomes[key]
+        if resume is not None and o.error is None:
+            name = f"window_{int(key):03d}"
+            link_tree(resume / name, out_dir / name, skip=(FINISHED,))
         wid = int(key)
         centre = int(windows.loc[windows.window_id == wid, "center_frame_id"].iloc[0])
         w = windows[windows.window_id == wid]
