@@ -25,10 +25,13 @@ import pandas as pd
 import torch
 
 from bench._common import read, stage_defaults, window_rows, write_parquet
-from nerf.config import preset
-from nerf.field import param_count
-from nerf.panoptic_fit import PanopticConfig, complete_instances, fit_panoptic, render_panoptic
-from nerf.trainer import fit_window, psnr
+from nerf.config import PanopticConfig, preset
+from nerf.fields import param_count
+from nerf.metrics import psnr
+from nerf.panoptic.complete import complete_instances
+from nerf.panoptic.render import render_panoptic
+from nerf.panoptic.train import fit_panoptic
+from nerf.trainer import fit_window
 from pipeline.classes import VOID
 from pipeline.images import read_label
 from rowmap.scoring import PanopticScore, thing_instances

@@ -44,12 +44,17 @@ import torch
 from bench._common import kept_frames, read, run_stage, write_parquet
 from bench.ablation import ground_truth, score
 from nerf.baselines import PANOPTIC_LIFTING_LIKE, SEMANTIC_ONLY
-from nerf.config import NerfConfig, preset
+from nerf.config import NerfConfig, PanopticConfig, preset
 from nerf.depth_poses import depth_initial_poses
-from nerf.field import param_count
+from nerf.fields import param_count
 from nerf.geometry import pose_matrix
-from nerf.panoptic_fit import PanopticConfig, WindowLabels, complete_instances, fit_panoptic, render_panoptic
-from nerf.trainer import WindowData, fit_window, psnr
+from nerf.metrics import psnr
+from nerf.panoptic.complete import complete_instances
+from nerf.panoptic.labels import WindowLabels
+from nerf.panoptic.render import render_panoptic
+from nerf.panoptic.train import fit_panoptic
+from nerf.trainer import fit_window
+from nerf.window import WindowData
 from rowmap.window_data import initial_poses, load_labels, load_window
 
 DEPTH_ICP = "depth ICP + online refinement"

@@ -29,9 +29,9 @@ import torch
 
 from bench._common import read, window_rows, write_parquet
 from bench.compare import fit_and_score, scored_window
-from nerf.config import preset
-from nerf.panoptic_fit import PanopticConfig, WindowLabels
-from nerf.trainer import WindowData
+from nerf.config import PanopticConfig, preset
+from nerf.panoptic.labels import WindowLabels
+from nerf.window import WindowData
 
 # (name, preset the point starts from, changes); steps are scaled by the run mode
 POINTS: list[tuple[str, str, dict]] = [

@@ -19,7 +19,8 @@ import torch
 
 from bench._common import bar_plot, kept_frames, window_rows, write_parquet
 from nerf.config import preset
-from nerf.trainer import fit_window, psnr
+from nerf.metrics import psnr
+from nerf.trainer import fit_window
 from rowmap.window_data import load_window
 
 

@@ -28,9 +28,11 @@ import pandas as pd
 import torch
 
 from bench._common import bar_plot, kept_frames, median, window_rows, write_parquet
-from nerf.config import preset
-from nerf.panoptic_fit import PanopticConfig, WindowLabels, fit_panoptic
-from nerf.trainer import fit_window, psnr
+from nerf.config import PanopticConfig, preset
+from nerf.metrics import psnr
+from nerf.panoptic.labels import WindowLabels
+from nerf.panoptic.train import fit_panoptic
+from nerf.trainer import fit_window
 from pipeline.classes import THING_IDS
 from rowmap.window_data import load_labels, load_window
 

@@ -1,157 +1,125 @@
-"""Model and training settings, with the presets L, S and cpu."""
+"""Settings of the model library: the radiance field and its training (NerfConfig, with the presets L, S
+and cpu), the panoptic phase (PanopticConfig), and the override layer a stage puts over a preset.
+
+Lengths are metres unless a name says otherwise; positions inside the field are normalised (see
+nerf/window.py `Scene`).
+"""
 from __future__ import annotations
 
+import dataclasses
+import typing
 from dataclasses import dataclass, replace
-from typing import Literal
+from typing import Any, Literal
 
 Preset = Literal["cpu", "S", "L"]
+FieldKind = Literal["permuto", "mlp_pe"]
+GridMode = Literal["delta", "shared", "independent"]
 
 
 @dataclass(frozen=True)
 class NerfConfig:
     preset: Preset = "cpu"
-    """model size preset: cpu (default run on 2 cores), S (9 levels, 2^15) or L (21 levels, 2^18)."""
+    """model size preset: 'cpu' (sized for the default run on a 2-core machine), 'S' (9 levels, 2^15) or 'L'
+    (21 levels, 2^18), the paper's two sizes for a GPU."""
     n_levels: int = 8
-    """levels of the colour grid."""
+    """levels of the colour hash grid, from coarsest_res_m to finest_res_m (geometric). Range 1-32. More levels
+    add detail scales at a proportional cost per sample."""
     n_features: int = 4
-    """features per level."""
+    """features per level of the colour grid (1-8). The field's feature width is n_levels x n_features."""
     log2_capacity: int = 19
-    """log2 of the colour grid's hash table size per level. The window's bounds reach the back wall 3.5 m away,
-    so the fine levels hold far more lattice vertices than a small table has rows and the hash collisions cost
-    more than anything else: default row, window 1, 10 levels of 2 features, edge_ray_share 0.25, one core per
-    fit side by side: 2^16 -> val 25.9 dB (fit 106 s), 2^18 -> 26.2 (115 s), 2^19 -> 26.9 (130 s), 2^20 -> 26.8
-    (151 s). At 2^19 (finest 3 mm): 2 features x 10 levels 26.9 dB (130 s), 4 x 10 27.4 (168 s), 4 x 8 27.4
-    (161 s; windows 0 / 2: 26.6 / 26.9 dB, 143 / 151 s), 4 x 6 27.0 (137 s), 8 x 5 26.8 (159 s); 4 x 8 at 2^18
-    27.1 (146 s). The cpu preset is 4 x 8 at 2^19 (16.8 M table parameters, 67 MB)."""
+    """log2 of the colour grid's hash table rows per level (range 10-24). The window's bounds reach the far
+    plane, so the fine levels hold far more lattice vertices than the table has rows; raise it when fine
+    texture blurs (hash collisions), lower it to save memory (table memory = levels x 2^capacity x
+    features x 4 bytes)."""
     log2_capacity_delta: int = 12
-    """log2 of the panoptic delta grid's table size per level."""
+    """log2 of the panoptic delta grid's table rows per level (range 8-24): the panoptic labels vary far more
+    slowly than colour, so this grid can be much smaller."""
     finest_res_m: float = 0.003
-    """finest lattice scale, metres (window 1 at 2^19, 10 x 2: 4 mm -> 26.86 dB, 3 mm -> 26.94)."""
+    """finest lattice scale, metres (> 0, below coarsest_res_m). About the size of the smallest detail to
+    resolve; finer than the pixel footprint at the working distance adds collisions, not detail."""
     coarsest_res_m: float = 0.5
-    """coarsest lattice scale, metres."""
+    """coarsest lattice scale, metres: about the size of the largest structures of the scene."""
     hidden: int = 64
-    """width of the decoders' hidden layers."""
-    field_kind: Literal["permuto", "mlp_pe"] = "permuto"
-    """radiance field: 'permuto' (hash grid + small decoders, ours) or 'mlp_pe' (the Semantic-NeRF-like
-    baseline: an MLP on a Fourier encoding of position and direction, nerf/baselines.py)."""
+    """width of the hidden layers of the density, colour and panoptic decoders (16-256)."""
+    field_kind: FieldKind = "permuto"
+    """radiance field: 'permuto' (permutohedral hash grid + small decoders, nerf/fields/permuto.py) or
+    'mlp_pe' (the Semantic-NeRF-like baseline: an MLP on a Fourier encoding, nerf/fields/mlp_pe.py)."""
     steps: int = 1200
-    """optimisation steps (the cpu preset is sized for under 3 minutes per window with 2 workers on 2 cores, with
-    a margin: the same fit runs up to a quarter slower in the pipeline than alone in a process). Default row,
-    window 1, the cpu preset, depth_loss_weight 0.02, side by side: 1200 steps -> val 27.9 dB in 129 s, 1300 ->
-    28.0 dB in 141 s (in one pipeline run of the harder variant 1300 steps took 180 s on window 1: over the
-    budget's margin). With depth_loss_weight 0.1: 1300 steps -> 27.1 dB in 138 s, 1500 -> 27.4 dB in 161 s. Older
-    model (10 x 2, 2^16): 600 -> 1500 steps 21.4 -> 24.1 dB, 1500 -> 1900 24.3 -> 24.2."""
+    """optimisation steps of the colour phase (>= 1). Fit time grows linearly with it; the cpu preset is sized
+    to fit a window in a few minutes on one core."""
     rays_per_step: int = 1024
-    """rays per step."""
+    """rays per optimisation step (>= 2: half carry the depth loss, half move the poses)."""
     edge_ray_share: float = 0.25
-    """share of each step's rays drawn with probability proportional to the training image's colour gradient
-    magnitude (the rest uniformly over the training pixels): most of the colour error sits on fine texture and
-    occlusion edges. Default row (10 levels x 2 features, 2^16), val PSNR of windows 0 / 1 / 2: 0 -> 24.8 / 25.3
-    / 25.1 dB, 0.25 -> 25.1 / 25.9 / 25.2; window 1 with 0.5: 25.7."""
+    """share (0-1) of each step's rays drawn with probability proportional to the training image's colour
+    gradient magnitude (the rest uniformly over the training pixels): most colour error sits on fine texture
+    and occlusion edges. 0 = uniform rays."""
     lr_grid: float = 2e-2
-    """Adam learning rate of the hash tables (default row, window 1, cpu preset: 0.01 -> val 27.0 dB, 0.02 ->
-    27.1, 0.04 -> 27.0)."""
+    """Adam learning rate of the hash tables (normalised feature units; typical 5e-3 to 5e-2)."""
     lr_mlp: float = 1e-2
-    """Adam learning rate of the decoders (window 1: 0.005 -> 26.9 dB, 0.01 -> 27.1, 0.02 -> 27.0)."""
+    """Adam learning rate of the decoders (typical 1e-3 to 2e-2)."""
     lr_decay: float = 0.1
-    """the learning rates fall exponentially to this share of their start value over the steps (default row,
-    window 1, edge_ray_share 0.25: 0.01 -> val 25.2 dB, 0.03 -> 25.4, 0.1 -> 25.9)."""
+    """the learning rates fall exponentially to this share (0-1] of their start value over the steps
+    (1 = constant rate)."""
     lr_pose: float = 1e-4
-    """Adam learning rate of the pose corrections (normalised scene units; rotation 6D entries)."""
+    """Adam learning rate of the pose corrections (normalised scene units; rotation 6D entries). Raise it when
+    the initial poses are far off, lower it when refined poses wander."""
     pose_warmup_steps: int = 200
-    """steps before the poses start to move (let the geometry form first)."""
+    """steps (>= 0) before the poses start to move, so the geometry forms first."""
     refine_poses: bool = True
-    """optimise the train poses online from the colour loss."""
+    """optimise the training poses online from the colour loss (off = keep the initial poses)."""
     val_register_every: int = 100
-    """register the validation poses to the frozen model every this many steps."""
+    """register the validation poses to the frozen model every this many steps (>= 1)."""
     val_register_steps: int = 8
     """steps of each periodic validation-pose registration (the final one: val_register_final_steps)."""
     val_register_final_steps: int = 96
-    """steps of the validation-pose registration after the last training step (the validation PSNR is measured
-    at the poses it ends with)."""
+    """steps of the validation-pose registration after the last training step; the validation PSNR is
+    measured at the poses it ends with, so too few steps report pose error as model error."""
     val_register_anneal: float = 0.1
-    """the final registration's learning rate falls exponentially to this share of its start over its steps.
-    At a constant rate Adam leaves the poses jittering by about one step around their optimum (a tenth of a
-    pixel of rotation matters on fine texture). Measured on one frozen model per window (default row, windows
-    2 / 0, the periodic registrations uniform, then each final registration from the same poses), val PSNR:
-    no final registration 27.59 / 27.36 dB; 48 steps as before (constant rate, uniform rays) 27.25 / 27.29;
-    48 annealed to 0.1 28.30 / 28.12; 48 with half the rays on edges 27.92 / 27.68; both 28.42 / 28.26; both
-    with 96 steps 28.52 / 28.33 (3 s more); with 2048 rays 28.59 / 28.38 (8 s more again)."""
+    """the final registration's learning rate falls exponentially to this share (0-1] of its start over its
+    steps: at a constant rate Adam leaves the poses jittering by about one step around their optimum."""
     val_register_edge_share: float = 0.5
-    """share of each registration step's rays drawn by the validation frames' colour gradient magnitude (like
-    edge_ray_share): the pose gradient comes from image gradients, so uniform rays on flat colour carry none."""
+    """share (0-1) of each registration step's rays drawn by the validation frames' colour gradient magnitude
+    (like edge_ray_share): the pose gradient comes from image gradients, so rays on flat colour carry none."""
     depth_loss_weight: float = 0.02
-    """weight of the depth loss (only on rays whose poses are detached, so it never moves poses). An L1 in metres
-    beside a colour MSE: at 0.1 it outweighed the colour loss once the model could fit fine texture. Default row,
-    window 1, the cpu preset at 1300 steps, one core per fit side by side (rendered depth against the sensor's on
-    the validation pixels nearer than 1.5 m): 0.1 -> val 27.1 dB, depth error median 2.9 mm (p90 49 mm); 0.05 ->
-    27.5 dB; 0.03 -> 27.5 dB; 0.02 -> 28.0 dB, 4.2 mm (p90 78 mm); 0.01 -> 28.0 dB, 5.0 mm (p90 84 mm). Whole rows,
-    0.1 -> 0.02 (1300 steps): default row mean val PSNR 26.5 -> 27.7 dB, PQ 0.908 -> 0.921, fruit diameter median
-    error 3.4 -> 3.6 mm (MAE 6.4 -> 4.4 mm), ID consistency 1.0 -> 0.96 (two fruits at the recording's ends);
-    harder variant 26.6 -> 27.6 dB, PQ 0.905 -> 0.919, row ID consistency 0.81 -> 0.89, count 35 -> 37 of 38."""
+    """weight (>= 0) of the depth L1 loss in metres, beside the colour MSE, on the half of the rays whose poses
+    are detached (so depth never moves poses). 0 = colour only. Higher values sharpen geometry early but
+    outweigh the colour loss once the model fits fine texture."""
     depth_edge_m: float = 0.05
     """pixels whose 3x3 neighbourhood in the sensor depth spans more than this (metres), or holds a pixel
-    without depth, get no depth loss (0 = every valid pixel): at a depth edge the pixel's colour mixes both
-    surfaces, which the field can only render by a soft edge whose expected depth lies between them. Default
-    row, window 1, 1900 steps, constant weight 0.1: off -> val 24.2 dB, rendered depth median error 10.8 mm;
-    0.05 -> 25.0 / 24.4 dB (seeds 0 / 1), 6.7 / 7.3 mm; 0.02 -> 23.9 dB, 6.3 mm."""
-    depth_loss_fade: float = 0.0
-    """share of the steps over which the depth loss weight falls linearly to 0 (0 = constant weight):
-    depth shapes the geometry early, colour alone refines it and the poses later. Default row, window 1
-    (6 val frames, occupancy_res 256, 1900 steps, one seed, depth_edge_m off): constant 0.1 -> val PSNR
-    24.2 dB, rendered depth median error 11 mm (vs sensor, < 1.5 m); constant 0.03 -> 25.1 dB, 13 mm; fade
-    0.4 -> 25.8 dB, 19 mm (with depth_edge_m 0.05: 25.6 dB, 14 mm). A whole row with fade 0.4 gave mean val
-    PSNR 25.7 dB but a fruit diameter median error of 6.5 mm (3.8 mm without): kept off, the fruit map
-    measures fruits from the rendered depth. A Huber (smooth L1) depth loss did not help PSNR either."""
-    opacity_loss_weight: float = 0.0
-    """weight of the opacity loss: 1 - opacity reached by the sensor depth (plus a margin), on the rays with
-    valid depth whose poses are detached; makes surfaces opaque so nothing behind them shows in renders
-    (0.1 measured -0.5 dB on the default row with truncation off: kept off)."""
+    without depth, carry no depth loss (0 = every valid pixel): at a depth edge the pixel's colour mixes both
+    surfaces and its expected depth lies between them. Raise it for noisy sensors on smooth scenes."""
     train_early_stop: float = 1e-3
     """training drops samples whose transmittance (from a density pass without gradients) is below this
-    (0 = keep all): the samples hidden behind opaque surfaces cost a forward and a backward pass and teach nothing
-    (default row: 60 -> 48 training samples per ray, same PSNR)."""
-    truncate_at_depth: bool = False
-    """training rays stop a margin past the sensor depth (off = march to the far plane like rendering). On:
-    whatever lies behind a not yet opaque surface is never trained but renders show it; measured on the default
-    row (600 steps) val PSNR 17.4 dB (training frames rendered: 17.4, training batches 22.5) against 21.4 off."""
+    (0-1; 0 = keep all): samples hidden behind opaque surfaces cost a forward and a backward pass and teach
+    nothing."""
     near_m: float = 0.15
-    """near plane."""
+    """near plane, metres (> 0): nothing closer to the camera is modelled."""
     far_m: float = 3.5
-    """far plane (covers the far row and the back wall)."""
+    """far plane, metres (> near_m): should cover everything visible (far row, back wall); it also sets the
+    window's bounds."""
     step_scale: float = 3.0
-    """marching step = step_scale * pixel footprint at the sample's depth (cone marching)."""
-    train_sampling: Literal["depth", "occupancy"] = "occupancy"
-    """training samples: 'depth' = a band around the sensor depth plus free-space samples in front
-    (RGB-D rays), 'occupancy' = cone marching through the occupancy grid like rendering. 'depth' measured
-    poorly on the default row (12 samples per ray, 4096 rays: val 14.8 dB; the occupied cells in front of
-    the band stay untrained and renders see them)."""
-    surface_samples: int = 8
-    """samples in the band around the sensor depth (train_sampling = depth)."""
-    free_samples: int = 4
-    """samples in the free space in front of the sensor depth (train_sampling = depth)."""
-    max_step_m: float = 0.0
-    """cap on the marching step (0 = none): keeps distant surfaces (far row, wall) from being undersampled."""
+    """marching step = step_scale x the pixel footprint at the sample's depth (cone marching; > 0). Smaller
+    steps sample thin structures better at a proportional cost."""
     max_samples_per_ray: int = 96
-    """cap on samples per ray during training."""
+    """cap on the samples per ray during training (>= 1)."""
     occupancy_res: int = 256
-    """occupancy grid cells along the longest side of the window's bounds. Finer cells leave fewer empty samples
-    around surfaces: default row, window 1, 1500 steps: 128 -> 55.7 training samples per ray, fit 234 s, val
-    24.6 dB; 256 -> 31.3, 136 s, 24.3 dB (measured side by side, one core each); 192 (1900 steps) -> 43.5."""
+    """occupancy grid cells along the longest side of the window's bounds (16-1024). Finer cells leave fewer
+    empty samples around surfaces; memory grows with its cube."""
     occupancy_dilate: int = 1
-    """cells added around the depth-initialised occupancy (covers pose and depth noise)."""
+    """cells (>= 0) added around the depth-initialised occupancy, to cover pose and depth noise."""
     occupancy_every: int = 64
-    """update the occupancy grid (EMA of density, pruning) every this many steps."""
+    """update the occupancy grid (EMA of density, pruning) every this many steps (>= 1)."""
     occupancy_threshold: float = 0.01
-    """a cell stays occupied while its EMA opacity over one marching step exceeds this."""
+    """a cell stays occupied while its EMA opacity over one marching step exceeds this (0-1). Higher prunes
+    more (faster, but may cut thin or faint surfaces)."""
     skip_empty: bool = True
     """sample only in occupied cells (off = every sample inside the window's bounds, for benchmarks)."""
     early_stop_transmittance: float = 1e-3
-    """rendering stops a ray once its transmittance drops below this (0 = never: march to the far plane)."""
+    """rendering stops a ray once its transmittance drops below this (0-1; 0 = march to the far plane)."""
     chunk_rays: int = 8192
-    """rays per chunk when rendering images."""
+    """rays per chunk when rendering images (>= 1): bounds the memory of a render, not its result."""
     seed: int = 0
-    """random seed of the fit."""
+    """random seed of the fit (initialisation and ray draws)."""
 
 
 PRESETS: dict[str, dict] = {
@@ -167,3 +135,160 @@ def preset(name: str, **overrides) -> NerfConfig:
     if name not in PRESETS:
         raise ValueError(f"unknown preset {name!r}; presets: {sorted(PRESETS)}")
     return replace(NerfConfig(preset=name, **PRESETS[name]), **overrides)  # type: ignore[arg-type]
+
+
+@dataclass(frozen=True)
+class PanopticConfig:
+    enabled: bool = True
+    """train the panoptic part and write semantic/instance renders (off = colour only)."""
+    steps: int = 500
+    """steps of the panoptic phase (after the colour phase; >= 0)."""
+    frames_per_step: int = 4
+    """training frames per step (>= 1; each frame's segments are assigned to slots on their own)."""
+    rays_per_frame: int = 384
+    """rays per frame and step (>= 1)."""
+    thing_ray_share: float = 0.5
+    """share (0-1) of a frame's rays drawn from its thing (fruit) segments, so small fruits are not starved;
+    importance weights keep the semantic loss unbiased."""
+    grid_mode: GridMode = "delta"
+    """panoptic features: 'delta' = a delta grid on top of the frozen colour grid (PAg-NeRF), 'shared' = the
+    colour features themselves (panoptic losses then train them too; the only mode for a field without a hash
+    grid), 'independent' = a full-size grid of its own."""
+    n_slots: int = 0
+    """instance slots including slot 0 = stuff (0 = automatic: 1 + 3 x the ID window width). Set it only to
+    compare runs with a fixed head size; too few slots for the ID window is an error."""
+    stuff_only_steps: int = 150
+    """steps of the phase for a window without any thing detection in its training frames: only the
+    semantic head is trained (no assignment, no instance head), and every rendered instance id is 0."""
+    instances: bool = True
+    """train and render instances (off = semantic only, the Semantic-NeRF-like baseline: every rendered
+    instance id is 0, so all fruits of one class in a frame form one segment)."""
+    id_window: bool = True
+    """repeated-ID rejection: restrict each segment to the slot window at its position along the row."""
+    id_window_margin: int = 4
+    """slots (>= 0) added to the busiest training frame's segment count to give the ID window width. Raise it
+    when the detector misses many fruits in the busiest frame."""
+    position_prior: float = 0.05
+    """with the ID window: weight (>= 0) of the slot preference from the segment's position along the row,
+    which breaks the untrained head's ties alike in every frame (assignment costs lie in [-1, 0])."""
+    memory_prior: float = 0.3
+    """weight (>= 0) of the slot-memory term of the assignment cost (nerf/panoptic/assignment.py SlotMemory): a
+    segment prefers the slot whose earlier segments lay at its 3D position and avoids slots of fruits
+    elsewhere. 0 = off (plain assignment on the predicted probabilities)."""
+    w_semantic: float = 1.0
+    """weight (>= 0) of the confidence-weighted semantic cross entropy."""
+    stuff_confidence: float = 0.5
+    """confidence (0-1) of a stuff label (a pixel no detection covers) in the semantic loss; detections carry
+    their score. Below 1 because a missing detection is weaker evidence than a detection: a detector misses a
+    real fruit in many frames, while its false positives do not recur at one 3D place. 1 = trust stuff labels
+    fully."""
+    w_instance: float = 1.0
+    """weight (>= 0) of the instance loss on thing rays (targets from the assignment)."""
+    w_stuff: float = 1.0
+    """weight (>= 0) of the loss pulling stuff rays to slot 0."""
+    w_consistency: float = 0.1
+    """weight (>= 0) of the segment-consistency loss (a weak pull of a segment's rays to one distribution)."""
+    lr_grid: float = 1e-2
+    """Adam learning rate of the panoptic grid (the colour grid gets a tenth of it in 'shared' mode)."""
+    lr_mlp: float = 1e-2
+    """Adam learning rate of the semantic and instance heads."""
+    min_weight: float = 1e-2
+    """samples with a smaller colour weight (0-1) skip the panoptic heads: they could move a ray's
+    distribution by at most that weight. 0 = every sample (slower, same result within that weight)."""
+    grow_threshold: float = 0.3
+    """post-processing (hysteresis, 0-1): a pixel whose fruit probability exceeds this, though not the stuff
+    classes', joins the fruit instance its most likely slot names when it touches that instance's sure
+    pixels. Recovers the weakly labelled rims of fruits cut by the image border or half hidden, without
+    creating new instances from weak evidence (1 = off)."""
+    grow_depth_m: float = 0.02
+    """post-processing: a pixel an instance grows into must have a rendered depth within this (metres, >= 0)
+    of the instance's sure pixels' depth range, so a rim never spreads onto the leaf in front or the wall
+    behind. About the fruit's depth extent seen from the camera."""
+    min_segment_px: int = 12
+    """post-processing: rendered instances smaller than this (pixels, after the 3x3 opening) are dropped.
+    Scale it with the image area."""
+    complete_3d: bool = True
+    """post-processing over the window's rendered frames (nerf/panoptic/complete.py): each instance whose
+    rendered pixels, un-projected with the rendered depth, fit a plausible sphere claims the stuff pixels of
+    every frame whose 3D point lies inside that sphere. A fruit's side seen only where it enters or leaves
+    the image is what the detector misses most; the fruit's 3D extent from the other frames says otherwise."""
+    complete_margin_m: float = 0.005
+    """a pixel lies inside a fruit's sphere when its 3D point is within the radius plus this (metres, >= 0;
+    about the rendered depth error)."""
+    complete_core: float = 0.7
+    """3D completion by ray (0-1): a stuff pixel whose ray passes within this share of an instance's sphere
+    radius of its centre, with a rendered depth not in front of where the ray enters that inner sphere (less
+    complete_margin_m), also joins the instance: at a fruit's silhouette and along the image border the
+    rendered depth blends into what lies behind, so the un-projected point misses the sphere though the ray
+    crosses the fruit. Nothing in front of the fruit (a leaf) is taken. 0 = off; values near 1 take the
+    background around the fruit."""
+    complete_min_points: int = 100
+    """an instance needs this many un-projected pixels (>= 4) over the window's frames for its sphere."""
+    complete_max_radius_m: float = 0.06
+    """largest plausible fruit radius for the sphere, metres (> 0; sweet pepper about 0.03-0.05 m). Too large
+    lets a shallow cap's fit claim the leaves around a fruit; set it for the crop."""
+    n_classes: int = 5
+    """semantic classes (pipeline/classes.py)."""
+    thing_classes: tuple[int, ...] = (2, 3, 4)
+    """semantic classes that are things (have instances)."""
+
+    def __post_init__(self) -> None:
+        if not 0.0 <= self.stuff_confidence <= 1.0:
+            raise ValueError(f"panoptic.stuff_confidence must lie in [0, 1], got {self.stuff_confidence}")
+        if not 0.0 <= self.complete_core <= 1.0:
+            raise ValueError(f"panoptic.complete_core must lie in [0, 1], got {self.complete_core}")
+        if not 0.0 <= self.grow_threshold <= 1.0:
+            raise ValueError(f"panoptic.grow_threshold must lie in [0, 1], got {self.grow_threshold}")
+        if not self.grow_depth_m >= 0.0:
+            raise ValueError(f"panoptic.grow_depth_m must be >= 0, got {self.grow_depth_m}")
+        if not (self.complete_margin_m >= 0.0 and self.complete_max_radius_m > 0.0 and self.complete_min_points >= 4):
+            raise ValueError("panoptic.complete_margin_m must be >= 0, complete_max_radius_m > 0 and "
+                             f"complete_min_points >= 4; got {self.complete_margin_m}, {self.complete_max_radius_m}, "
+                             f"{self.complete_min_points}")
+
+
+def override_layer(cls: type, name: str, exclude: tuple[str, ...] = ()) -> type:
+    """A frozen dataclass `name` with every field of the dataclass `cls` except `exclude`, each typed
+    `T | None` with default None = "not set" (so every setting can be given and none has a sentinel). Its
+    field docs are `cls`'s (`__docs_from__`). Apply it with `set_fields`."""
+    hints = typing.get_type_hints(cls)
+    fields = [(f.name, typing.Optional[hints[f.name]], dataclasses.field(default=None))
+              for f in dataclasses.fields(cls) if f.name not in exclude]
+    layer = dataclasses.make_dataclass(name, fields, frozen=True)
+    layer.__module__ = cls.__module__
+    layer.__doc__ = f"Overrides of {cls.__name__} settings: None = keep the value below this layer."
+    layer.__docs_from__ = cls
+    return layer
+
+
+def set_fields(layer: Any) -> dict[str, Any]:
+    """The fields of an override layer that are set (not None)."""
+    return {f.name: getattr(layer, f.name) for f in dataclasses.fields(layer) if getattr(layer, f.name) is not None}
+
+
+NerfOverrides = override_layer(NerfConfig, "NerfOverrides", exclude=("preset", "refine_poses", "seed"))
+"""Overrides of a preset's model and training settings (`nerf_fit.model.<name>`); preset, refine_poses and
+seed are set by the stage's own settings."""
+
+REMOVED: dict[str, Any] = {"train_sampling": "occupancy", "surface_samples": None, "free_samples": None,
+                           "truncate_at_depth": False, "opacity_loss_weight": 0.0, "depth_loss_fade": 0.0,
+                           "max_step_m": 0.0, "stuff_border": 0.0, "slot_reach_m": 0.0, "region_reach_m": 0.0}
+"""Settings a checkpoint may name that no longer exist, with the value that behaved as today (None = any:
+it only acted together with another removed setting)."""
+
+
+def config_from_state(cls: type, values: dict) -> Any:
+    """`cls` (NerfConfig or PanopticConfig) from a checkpoint's settings, dropping removed settings that carry
+    the value that behaved as today; a removed setting with another value is an error (the checkpoint was
+    made by code that no longer exists)."""
+    names = {f.name for f in dataclasses.fields(cls)}
+    kept = {}
+    for k, v in values.items():
+        if k in names:
+            kept[k] = tuple(v) if isinstance(v, list) else v
+        elif k not in REMOVED:
+            raise ValueError(f"checkpoint setting {k!r} is not a {cls.__name__} setting; settings: {sorted(names)}")
+        elif REMOVED[k] is not None and v != REMOVED[k]:
+            raise ValueError(f"checkpoint was made with {k}={v!r}, a setting that no longer exists (only "
+                             f"{REMOVED[k]!r} is supported); refit the window")
+    return cls(**kept)

@@ -4,14 +4,23 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import torch
 
 from nerf.geometry import align_similarity
 
 
-def psnr(pred: np.ndarray, target: np.ndarray) -> float:
-    """Images in [0, 1]; dB."""
-    mse = float(np.mean((np.asarray(pred, np.float64) - np.asarray(target, np.float64)) ** 2))
+def psnr_from_mse(mse: float) -> float:
+    """PSNR (dB) of images in [0, 1] with mean squared error `mse`: -10 log10(mse), inf for 0.
+    Example: mse 0.01 -> 20 dB."""
     return float("inf") if mse == 0 else -10 * math.log10(mse)
+
+
+def psnr(pred: np.ndarray | torch.Tensor, target: np.ndarray | torch.Tensor) -> float:
+    """PSNR (dB) of two images in [0, 1] (numpy arrays or torch tensors on any device, same shape),
+    computed in float64."""
+    as64 = lambda a: (a.detach().cpu().double().numpy() if isinstance(a, torch.Tensor)  # noqa: E731
+                      else np.asarray(a, np.float64))
+    return psnr_from_mse(float(np.mean((as64(pred) - as64(target)) ** 2)))
 
 
 def ate_rmse(est: np.ndarray, gt: np.ndarray, align: str = "se3") -> float:

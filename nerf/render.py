@@ -29,10 +29,9 @@ def pixel_rays(k: Tensor, c2w: Tensor, u: Tensor, v: Tensor) -> tuple[Tensor, Te
     return c2w[:, :3, 3], d
 
 
-def cone_steps(near: float, far: float, step_per_m: float, device: torch.device, max_step_m: float = 0.0) -> Tensor:
-    """Sample depths from near to far with dt = t * step_per_m (exponential spacing), dt capped at
-    max_step_m when > 0 (so distant surfaces still get several samples) -> edges [S+1]; near == far
-    gives no interval (rays get no samples)."""
+def cone_steps(near: float, far: float, step_per_m: float, device: torch.device) -> Tensor:
+    """Sample depths from near to far with dt = t * step_per_m (exponential spacing) -> edges [S+1];
+    near == far gives no interval (rays get no samples)."""
     if not (math.isfinite(near) and math.isfinite(far) and near > 0 and far >= near):
         raise ValueError(f"need 0 < near <= far (finite, metres) for cone marching, got near={near}, far={far} "
                          f"(a zero near plane would never advance the exponential steps)")
@@ -41,10 +40,7 @@ def cone_steps(near: float, far: float, step_per_m: float, device: torch.device,
     edges = [near]
     t = near
     while t < far:
-        dt = t * step_per_m
-        if max_step_m > 0:
-            dt = min(dt, max_step_m)
-        t = min(far, t + dt)
+        t = min(far, t + t * step_per_m)
         edges.append(t)
     return torch.tensor(edges, dtype=torch.float32, device=device)
 
@@ -62,10 +58,9 @@ class Samples:
         return self.t_mid.shape[0]
 
 
-def candidates(origins: Tensor, dirs: Tensor, edges: Tensor, occupied_fn, jitter: bool,
-               t_max: Tensor | None = None) -> tuple[Tensor, Tensor]:
+def candidates(origins: Tensor, dirs: Tensor, edges: Tensor, occupied_fn, jitter: bool) -> tuple[Tensor, Tensor]:
     """Candidate depths t [R, S] between `edges` (jittered or mid-points) and whether each lies in an
-    occupied cell [R, S] (and before the ray's t_max, if given)."""
+    occupied cell [R, S]."""
     r = origins.shape[0]
     lo, hi = edges[:-1], edges[1:]
     u = torch.rand(r, lo.shape[0], device=origins.device) if jitter else torch.full((r, lo.shape[0]), 0.5, device=origins.device)
@@ -73,8 +68,6 @@ def candidates(origins: Tensor, dirs: Tensor, edges: Tensor, occupied_fn, jitter
     with torch.no_grad():
         pts = origins.detach()[:, None, :] + dirs.detach()[:, None, :] * t[..., None]
         occ = occupied_fn(pts.reshape(-1, 3)).reshape(r, -1)
-        if t_max is not None:
-            occ &= t <= t_max[:, None]
     return t, occ
 
 
@@ -100,7 +93,7 @@ def _packed(ray_index: Tensor, col: Tensor, t: Tensor, edges: Tensor, dirs: Tens
 
 
 def march(origins: Tensor, dirs: Tensor, edges: Tensor, occupied_fn, jitter: bool, max_per_ray: int = 0,
-          first: int = 0, t_max: Tensor | None = None, fused: bool = True) -> Samples:
+          first: int = 0, fused: bool = True) -> Samples:
     """Samples at `edges` (midpoints or jittered) kept where `occupied_fn(points)` says the cell is
     occupied; `first`/`max_per_ray` select the occupied samples ranked [first, first+max) per ray.
     origins/dirs [R, 3] -> Samples. When `occupied_fn` is an OccupancyGrid on the CPU and the fused
@@ -108,7 +101,7 @@ def march(origins: Tensor, dirs: Tensor, edges: Tensor, occupied_fn, jitter: boo
     the same random draws and arithmetic: the same samples (tests/nerf/test_render.py)."""
     ext = _march_ext(origins, occupied_fn) if fused else None
     if ext is None:
-        t, occ = candidates(origins, dirs, edges, occupied_fn, jitter, t_max)
+        t, occ = candidates(origins, dirs, edges, occupied_fn, jitter)
         return pack(t, occ, edges, dirs, first, max_per_ray)
     r = origins.shape[0]
     u = torch.rand(r, edges.shape[0] - 1, device=origins.device) if jitter else None
@@ -117,7 +110,7 @@ def march(origins: Tensor, dirs: Tensor, edges: Tensor, occupied_fn, jitter: boo
         ray_index, col, t = ext.march_occupied(
             origins.detach().float().contiguous(), dirs.detach().float().contiguous(), edges.contiguous(), u,
             g.occupied.contiguous(), g.lo.contiguous(), g.cell.float().contiguous(), g.res,
-            None if t_max is None else t_max.detach().float().contiguous(), first, max_per_ray)
+            None, first, max_per_ray)   # None: the kernel's optional per-ray depth limit, unused
     return _packed(ray_index, col, t, edges, dirs)
 
 
@@ -150,43 +143,6 @@ def _march_ext(origins: Tensor, occupied_fn):
 
     ext = load_permuto_ext("cpu")
     return ext if ext is not None and hasattr(ext, "march_occupied") else None
-
-
-def depth_guided(depth: Tensor, dirs: Tensor, n_surface: int, n_free: int, near: float, far: float,
-                 band_rel: float = 0.04, band_min_m: float = 0.015, jitter: bool = True) -> Samples:
-    """Training samples for RGB-D rays: `n_surface` stratified samples in a band around the sensor depth
-    [d - b, d + b/2] (b = max(band_min_m, band_rel * d)) and `n_free` in the free space [near, d - b] in
-    front of it; rays without valid depth (0) get all samples stratified over [near, far]. Every ray has
-    the same number of samples, sorted by depth. Non-finite depths (NaN, inf) count as invalid.
-    depth [R] metres (z), dirs [R, 3] -> Samples."""
-    r = depth.shape[0]
-    dev = depth.device
-    valid = torch.isfinite(depth) & (depth > near)
-    depth = torch.where(valid, depth, torch.zeros_like(depth))
-    b = torch.clamp(depth * band_rel, min=band_min_m)
-    s_lo = torch.where(valid, depth - b, torch.full_like(depth, near)).clamp(min=near)
-    s_hi = torch.where(valid, depth + 0.5 * b, torch.full_like(depth, far))
-    f_hi = torch.where(valid, s_lo, torch.full_like(depth, near))
-
-    def strat(lo: Tensor, hi: Tensor, n: int) -> Tensor:
-        if n == 0:
-            return torch.zeros(r, 0, device=dev)
-        u = (torch.arange(n, device=dev) + (torch.rand(r, n, device=dev) if jitter else 0.5)) / n
-        return lo[:, None] + (hi - lo)[:, None] * u
-
-    # invalid rays: spread all samples over [near, far]
-    free = strat(torch.full_like(depth, near), f_hi, n_free)
-    surf = strat(s_lo, s_hi, n_surface)
-    t = torch.cat([free, surf], 1)
-    t_inv = strat(torch.full_like(depth, near), torch.full_like(depth, far), n_free + n_surface)
-    t = torch.where(valid[:, None], t, t_inv)
-    t, _ = torch.sort(t, 1)
-    gaps = torch.diff(t, dim=1)
-    last = (s_hi - s_lo)[:, None] / max(n_surface, 1)
-    delta = torch.cat([gaps, last], 1) * dirs.norm(dim=-1, keepdim=True)
-    n = t.shape[1]
-    ray_index = torch.arange(r, device=dev).repeat_interleave(n)
-    return Samples(ray_index, t.reshape(-1), delta.reshape(-1).clamp_min(1e-6), r)
 
 
 def composite_weights(sigma: Tensor, delta: Tensor, ray_index: Tensor, n_rays: int) -> tuple[Tensor, Tensor]:

@@ -196,9 +196,10 @@ def resolve(sections: dict[str, type], raw: dict[str, Any]) -> dict[str, Any]:
 
 
 def field_docs(cls: type) -> dict[str, str]:
-    """Docstrings written under dataclass fields, read from the class source."""
+    """Docstrings written under dataclass fields, read from the class source (for a class generated from
+    another one, such as an override layer, the source of the class its `__docs_from__` names)."""
     try:
-        src = textwrap.dedent(inspect.getsource(cls))
+        src = textwrap.dedent(inspect.getsource(getattr(cls, "__docs_from__", cls)))
     except (OSError, TypeError):
         return {}
     tree = ast.parse(src)

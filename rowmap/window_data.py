@@ -15,9 +15,9 @@ from pipeline.images import read_depth_m, read_label, read_rgb
 
 
 def load_window(frames: pd.DataFrame, data_root: Path):
-    """The window's frames (rows of frames.parquet, in order; `split` says train/val) as nerf.trainer.WindowData:
+    """The window's frames (rows of frames.parquet, in order; `split` says train/val) as nerf.window.WindowData:
     images, depth in metres, intrinsics, odometry (or given initial) poses."""
-    from nerf.trainer import WindowData
+    from nerf.window import WindowData
 
     imgs = np.stack([read_rgb(data_root / p) for p in frames["rgb_path"]])
     deps = np.stack([read_depth_m(data_root / p, s) for p, s in zip(frames["depth_path"], frames["depth_scale_m"])])
@@ -27,9 +27,9 @@ def load_window(frames: pd.DataFrame, data_root: Path):
 
 
 def load_labels(frames: pd.DataFrame, dets: pd.DataFrame | None, data_root: Path):
-    """The detector's panoptic input of a window's frames (nerf/panoptic_fit.WindowLabels): segments the
+    """The detector's panoptic input of a window's frames (nerf/panoptic/labels.WindowLabels): segments the
     depth filter dropped become void, thing pixels carry their segment's score, stuff pixels 1."""
-    from nerf.panoptic_fit import WindowLabels
+    from nerf.panoptic.labels import WindowLabels
 
     sems, insts, confs = [], [], []
     h, w = int(frames["height"].iloc[0]), int(frames["width"].iloc[0])

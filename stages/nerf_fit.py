@@ -16,9 +16,8 @@ import numpy as np
 import pandas as pd
 
 import schemas
-from nerf.config import NerfConfig, preset
+from nerf.config import NerfConfig, NerfOverrides, PanopticConfig, preset, set_fields
 from nerf.depth_poses import DepthPoses, depth_initial_poses
-from nerf.panoptic_fit import PanopticConfig
 from nerf.geometry import pose_txyzq, rotation_angle_deg
 from pipeline import io, parallel, progress
 from pipeline.stage import StageContext
@@ -31,31 +30,12 @@ OPTIONAL_INPUTS = ("colmap_poses",)  # initial poses when pose_source = colmap
 
 
 @dataclass(frozen=True)
-class ModelOverrides:
-    """Optional overrides of the preset's model/training settings (0 or negative = keep the preset's)."""
-
-    steps: int = 0
-    """optimisation steps."""
-    rays_per_step: int = 0
-    """rays per step."""
-    n_levels: int = 0
-    """levels of the colour grid."""
-    log2_capacity: int = 0
-    """log2 table size per level."""
-    depth_loss_weight: float = -1.0
-    """weight of the depth loss."""
-    depth_loss_fade: float = -1.0
-    """share of the steps over which the depth loss weight falls to 0 (nerf/config.py; 0 = constant weight)."""
-    skip_empty: int = -1
-    """1 = occupancy skipping, 0 = every sample inside the window's bounds (benchmarks)."""
-
-
-@dataclass(frozen=True)
 class Config:
     preset: Literal["cpu", "S", "L"] = "cpu"
     """model preset (nerf/config.py): cpu for the default run, S and L as in the paper."""
-    model: ModelOverrides = field(default_factory=ModelOverrides)
-    """per-setting overrides of the preset."""
+    model: NerfOverrides = field(default_factory=NerfOverrides)
+    """overrides of the preset's model and training settings (every NerfConfig setting but preset,
+    refine_poses and seed, which are this stage's own; unset = the preset's value)."""
     refine_poses: bool = True
     """optimise the camera poses online (off = keep the initial poses fixed)."""
     pose_source: Literal["odometry", "colmap"] = "odometry"
@@ -77,14 +57,12 @@ class Config:
     seed: int = 0
     """random seed of the fits."""
     panoptic: PanopticConfig = field(default_factory=PanopticConfig)
-    """the panoptic phase after the colour phase (nerf/panoptic_fit.py)."""
+    """the panoptic phase after the colour phase (nerf/panoptic/train.py)."""
 
 
 def model_config(cfg: Config) -> NerfConfig:
-    over = {k: v for k, v in vars(cfg.model).items() if (v >= 0 if k in ("depth_loss_weight", "depth_loss_fade") else v > 0)}
-    if "skip_empty" in over or cfg.model.skip_empty == 0:
-        over["skip_empty"] = bool(cfg.model.skip_empty)
-    return preset(cfg.preset, refine_poses=cfg.refine_poses, seed=cfg.seed, **over)
+    """The preset, with the settings cfg.model sets, and this stage's refine_poses and seed."""
+    return preset(cfg.preset, refine_poses=cfg.refine_poses, seed=cfg.seed, **set_fields(cfg.model))
 
 
 def window_payload(wid: int, w: pd.DataFrame, cfg: Config, mcfg: NerfConfig, device: str, out_dir: Path,
@@ -130,7 +108,9 @@ def fit_one(payload: dict) -> dict:
     pan = None
     pcfg = payload["panoptic"]
     if pcfg.enabled:
-        from nerf.panoptic_fit import complete_instances, fit_panoptic, render_panoptic
+        from nerf.panoptic.complete import complete_instances
+        from nerf.panoptic.render import render_panoptic
+        from nerf.panoptic.train import fit_panoptic
 
         labels = load_labels(frames, pd.DataFrame(payload["detections"]) if payload["detections"] else None, data_root)
         try:

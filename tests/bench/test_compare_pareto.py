@@ -31,8 +31,8 @@ def test_compare_table_means_windows_and_reports_skips():
 
 def test_pareto_image_scale_halves_images_labels_truth_and_intrinsics():
     from bench.pareto import downscale
-    from nerf.panoptic_fit import WindowLabels
-    from nerf.trainer import WindowData
+    from nerf.panoptic.labels import WindowLabels
+    from nerf.window import WindowData
 
     img = np.zeros((1, 4, 6, 3), np.uint8)
     img[0, :, :2] = 200                                   # left third bright

@@ -9,7 +9,7 @@ from scene_fixture import tiny_window  # noqa: E402
 
 from bench.skips import _render_modes, _without_things  # noqa: E402
 from nerf.config import preset  # noqa: E402
-from nerf.panoptic_fit import WindowLabels  # noqa: E402
+from nerf.panoptic.labels import WindowLabels  # noqa: E402
 from nerf.trainer import fit_window  # noqa: E402
 
 

@@ -1,7 +1,7 @@
 """A tiny ray-cast glasshouse window (the synthetic row's own scene code) for trainer tests."""
 import numpy as np
 
-from nerf.trainer import WindowData
+from nerf.window import WindowData
 from stages import synth
 from synthetic import render, scene, trajectory
 

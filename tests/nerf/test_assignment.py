@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 import torch
 
-from nerf.assignment import OUTSIDE_COST, SlotWindow, along_track, assign, position_preference, segment_costs
+from nerf.panoptic.assignment import OUTSIDE_COST, SlotWindow, along_track, assign, position_preference, segment_costs
 
 
 def test_segment_costs_are_minus_mean_probability():
@@ -76,7 +76,7 @@ def test_position_preference_makes_untrained_assignments_agree_between_frames():
 
 
 def test_slot_memory_gives_a_fruit_its_slot_again_and_new_fruits_free_slots():
-    from nerf.assignment import SlotMemory, segment_geometry
+    from nerf.panoptic.assignment import SlotMemory, segment_geometry
 
     mem = SlotMemory(6)
     a, b = np.array([0.0, 0.0, 0.7]), np.array([0.0, 0.08, 0.7])   # two fruits stacked 8 cm apart

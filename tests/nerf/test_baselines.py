@@ -9,11 +9,15 @@ import torch
 sys.path.insert(0, str(Path(__file__).parent))
 from scene_fixture import tiny_window  # noqa: E402
 
-from nerf.baselines import PANOPTIC_LIFTING_LIKE, SEMANTIC_ONLY, MlpPeField, fourier  # noqa: E402
-from nerf.config import preset  # noqa: E402
-from nerf.field import RadianceField, build_field  # noqa: E402
-from nerf.panoptic_fit import PanopticConfig, WindowLabels, fit_panoptic, render_panoptic  # noqa: E402
-from nerf.trainer import NerfModel, fit_window  # noqa: E402
+from nerf.baselines import PANOPTIC_LIFTING_LIKE, SEMANTIC_ONLY  # noqa: E402
+from nerf.config import PanopticConfig, preset  # noqa: E402
+from nerf.fields import Field, MlpPeField, RadianceField, build_field  # noqa: E402
+from nerf.fields.mlp_pe import fourier  # noqa: E402
+from nerf.model import NerfModel  # noqa: E402
+from nerf.panoptic.labels import WindowLabels  # noqa: E402
+from nerf.panoptic.render import render_panoptic  # noqa: E402
+from nerf.panoptic.train import fit_panoptic  # noqa: E402
+from nerf.trainer import fit_window  # noqa: E402
 
 # uniform ray batches (no edge rays): the training PSNR the tests read is then the images' PSNR; and the
 # heavier depth loss of earlier presets, which forms the geometry within a few dozen steps (the cpu preset's
@@ -43,6 +47,8 @@ def test_build_field_picks_the_kind_and_names_the_choices():
     cfg = preset("cpu")
     assert isinstance(build_field(cfg, 1.0), RadianceField)
     assert isinstance(build_field(replace(cfg, field_kind="mlp_pe"), 1.0), MlpPeField)
+    for kind in ("permuto", "mlp_pe"):   # both fields offer the one interface the trainer and the heads use
+        assert isinstance(build_field(replace(cfg, field_kind=kind), 1.0), Field)
     with pytest.raises(ValueError, match="mlp_pe"):
         build_field(replace(cfg, field_kind="voxels"), 1.0)  # type: ignore[arg-type]
 

@@ -9,9 +9,12 @@ import torch
 sys.path.insert(0, str(Path(__file__).parent))
 from scene_fixture import tiny_window  # noqa: E402
 
-from nerf.config import preset  # noqa: E402
-from nerf.panoptic_fit import (PanopticConfig, WindowLabels, fit_panoptic, load_panoptic, panoptic_labels,  # noqa: E402
-                               render_panoptic)
+from nerf.config import PanopticConfig, preset  # noqa: E402
+from nerf.panoptic.labels import WindowLabels  # noqa: E402
+from nerf.panoptic.post import panoptic_labels  # noqa: E402
+from nerf.panoptic.render import render_panoptic  # noqa: E402
+from nerf.panoptic.result import load_panoptic  # noqa: E402
+from nerf.panoptic.train import fit_panoptic  # noqa: E402
 from nerf.panoptic_metrics import dominant_ids  # noqa: E402
 from nerf.trainer import fit_window  # noqa: E402
 
@@ -96,27 +99,6 @@ def test_window_without_fruit_detections_skips_the_instance_part(fitted):
                                       PanopticConfig(steps=1)).params            # instance head not counted
     r = render_panoptic(model, load_panoptic(pres.state(), model), 1)
     assert (r["instance"] == 0).all()
-
-
-def test_stuff_labels_near_the_border_are_void_with_stuff_border(fitted):
-    data, sem, inst, model = fitted
-    n, h, w = sem.shape
-    m = int(round(0.2 * h))
-    border = np.zeros((h, w), bool)
-    border[:m] = border[-m:] = True
-    border[:, :m] = border[:, -m:] = True
-    # stuff labels only in the border strip, the fruits as detected, void elsewhere
-    lab = np.where(border[None] & ~np.isin(sem, [2, 3, 4]), 1, np.where(np.isin(sem, [2, 3, 4]), sem, 255))
-    labels = WindowLabels(lab.astype(np.uint8), np.where(np.isin(sem, [2, 3, 4]), inst, 0).astype(np.int32),
-                          np.ones(sem.shape, np.float32))
-    cfg = PanopticConfig(steps=30, frames_per_step=2, rays_per_frame=128)
-    trusted = fit_panoptic(model, labels, data.is_train, data.depths, cfg)
-    ignored = fit_panoptic(model, labels, data.is_train, data.depths, replace(cfg, stuff_border=0.2))
-    assert min(r["stuff"] for r in trusted.history) > 0                  # stuff rays pulled to slot 0
-    assert max(r["stuff"] for r in ignored.history) == 0                 # every stuff label lay in the margin
-    assert ignored.assignments > 0 and ignored.history[-1]["instance"] >= 0
-    with pytest.raises(ValueError, match="stuff_border"):
-        PanopticConfig(stuff_border=0.5)
 
 
 def test_nan_confidence_is_treated_as_zero():
@@ -234,13 +216,13 @@ def test_panoptic_phase_leaves_the_colour_model_alone(fitted):
 
 
 def test_thing_oversampling_is_undone_by_importance_weights():
-    from nerf.panoptic_fit import _draw_pixels
+    from nerf.pixel_sampling import draw_label_pixels
 
     sem = np.ones((40, 50), np.uint8)
     things = np.zeros((40, 50), bool)
     things[:4, :5] = True                        # 1 % of the pixels are fruit
     sem[things] = 4
-    px, w = _draw_pixels(sem, things, 20000, 0.5, np.random.default_rng(0))
+    px, w = draw_label_pixels(sem != 255, things, 20000, 0.5, np.random.default_rng(0))
     on = things.ravel()[px]
     assert 0.45 < on.mean() < 0.55                # half the rays land on fruit ...
     assert abs((w * on).sum() / w.sum() - 0.01) < 0.003   # ... but weigh as 1 % of the image
@@ -267,7 +249,7 @@ def _sphere_view(centre: np.ndarray, radius: float, cam_x: float, h: int = 40, w
 
 
 def test_complete_instances_gives_a_fruit_its_stuff_labelled_side_but_not_the_leaf_in_front():
-    from nerf.panoptic_fit import complete_instances
+    from nerf.panoptic.complete import complete_instances
 
     centre, radius = np.array([0.0, 0.0, 0.5]), 0.04
     frames, poses = [], []
@@ -299,7 +281,7 @@ def test_complete_instances_gives_a_fruit_its_stuff_labelled_side_but_not_the_le
 
 
 def test_completion_by_ray_takes_a_rim_whose_depth_fell_behind_but_not_the_wall_around_the_fruit():
-    from nerf.panoptic_fit import complete_instances, rays_through_core
+    from nerf.panoptic.complete import complete_instances, rays_through_core
 
     centre, radius = np.array([0.0, 0.0, 0.5]), 0.04
     frames, poses = [], []
@@ -331,61 +313,3 @@ def test_completion_by_ray_takes_a_rim_whose_depth_fell_behind_but_not_the_wall_
     assert (last["instance"][taken] == 7).all() and (last["semantic"][taken] == 2).all()
     assert (last["instance"][lost & rim] == 0).all() and (last["instance"][leaf] == 0).all()
     assert (last["instance"][truth == 0] == 0).all()                # the wall around the fruit stays stuff
-
-
-def test_a_region_far_from_where_its_slot_was_placed_takes_the_slot_placed_there():
-    from nerf.panoptic_fit import reach_slots
-
-    h, w, n = 10, 40, 4
-    inst = np.zeros((h, w), np.int32)
-    points = np.zeros((h, w, 3))
-    points[..., 0] = np.arange(w)[None, :] * 0.025                 # x = 2.5 cm per column, 0 .. 1 m
-    inst[2:6, 1:5] = 1                                              # slot 1's fruit, near x = 0.06
-    inst[2:6, 16:20] = 1                                            # slot 1 painted on a fruit at x = 0.44
-    inst[2:6, 36:40] = 1                                            # ... and at x = 0.94, where no slot is
-    inst[7:9, 16:18] = 3                                            # slot 3 was never placed: kept
-    p_inst = np.full((h, w, n), 0.1)
-    p_inst[..., 2] = 0.3                                            # slot 2 is the next most likely
-    centres = np.array([[np.nan] * 3, [0.07, 0, 0], [0.45, 0, 0], [np.nan] * 3])
-    out = reach_slots(inst, p_inst, points, centres, reach_m=0.12)
-    assert (out[2:6, 1:5] == 1).all() and (out[2:6, 16:20] == 2).all()
-    assert (out[2:6, 36:40] == 1).all() and (out[7:9, 16:18] == 3).all() and (out[inst == 0] == 0).all()
-    # the probabilities choose among the slots within reach
-    centres[3] = [0.43, 0, 0]
-    p_inst[..., 3] = 0.5
-    out = reach_slots(inst, p_inst, points, centres, reach_m=0.12)
-    assert (out[2:6, 16:20] == 3).all()
-    # panoptic_labels applies it when given the points and the slot centres, and not with slot_reach_m = 0
-    p_sem = np.zeros((h, w, 5))
-    p_sem[..., 1] = 1.0
-    p_sem[inst > 0] = [0, 0, 1, 0, 0]
-    p_i = np.full((h, w, n), 0.01)
-    for sl in (1, 3):
-        p_i[inst == sl, sl] = 0.9
-    p_i[2:6, 16:20, 3] = 0.3                                        # the head's second choice there
-    cfg = PanopticConfig(min_segment_px=1, slot_reach_m=0.12, region_reach_m=0.0)   # slot reach alone
-    _, on = panoptic_labels(p_sem, p_i, cfg, None, points, centres)
-    _, off = panoptic_labels(p_sem, p_i, replace(cfg, slot_reach_m=0.0), None, points, centres)
-    assert (on[2:6, 16:20] == 3).all() and (off[2:6, 16:20] == 1).all()
-
-
-def test_a_small_far_region_of_a_slot_takes_the_slot_of_the_fruit_it_lies_on():
-    from nerf.panoptic_fit import split_far_regions
-
-    h, w, n = 10, 40, 4
-    inst = np.zeros((h, w), np.int32)
-    points = np.zeros((h, w, 3))
-    points[..., 0] = np.arange(w)[None, :] * 0.025                 # x = 2.5 cm per column
-    inst[1:9, 1:9] = 1                                              # fruit A: slot 1, large
-    inst[3:6, 18:20] = 1                                            # fruit B's left part painted with slot 1
-    inst[3:6, 20:23] = 2                                            # fruit B's own slot, beside it
-    inst[2:4, 36:38] = 1                                            # a far region with no other slot near it
-    p_inst = np.full((h, w, n), 0.1)
-    p_inst[..., 2] = 0.3
-    out = split_far_regions(inst, p_inst, points, reach_m=0.12)      # off by default (region_reach_m)
-    assert (out[3:6, 18:23] == 2).all() and (out[1:9, 1:9] == 1).all()
-    assert (out[2:4, 36:38] == 1).all() and (out[inst == 0] == 0).all()
-    # a slot with one region, or regions within reach of each other, is left alone
-    near = np.zeros((h, w), np.int32)
-    near[1:4, 1:4] = near[6:9, 5:8] = 3
-    assert np.array_equal(split_far_regions(near, p_inst, points, 0.12), near)

@@ -1,7 +1,7 @@
 import torch
 
-from nerf.panoptic import integrate_probs as integrate
-from nerf.panoptic_losses import consistency_loss, instance_loss, semantic_loss
+from nerf.panoptic.heads import integrate_probs as integrate
+from nerf.panoptic.losses import consistency_loss, instance_loss, semantic_loss
 
 
 def test_integration_example_and_detached_weights():
@@ -43,8 +43,8 @@ def test_consistency_is_zero_for_uniform_segments():
 
 def test_panoptic_losses_move_neither_density_nor_poses():
     from nerf.config import preset
-    from nerf.field import RadianceField
-    from nerf.panoptic import PanopticField
+    from nerf.fields import RadianceField
+    from nerf.panoptic.heads import PanopticField
     from nerf.poses import PoseCorrection
     from nerf.render import composite_weights
 

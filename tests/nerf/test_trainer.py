@@ -10,7 +10,8 @@ sys.path.insert(0, str(Path(__file__).parent))
 from scene_fixture import tiny_window  # noqa: E402
 
 from nerf.config import preset  # noqa: E402
-from nerf.trainer import NerfModel, NonFiniteLoss, fit_window  # noqa: E402
+from nerf.model import NerfModel  # noqa: E402
+from nerf.trainer import NonFiniteLoss, fit_window  # noqa: E402
 
 FAST = dict(steps=100, rays_per_step=256, occupancy_every=20, val_register_every=30, val_register_steps=2,
             pose_warmup_steps=20, n_levels=6, log2_capacity=12)
@@ -51,7 +52,7 @@ def test_skipping_evaluates_fewer_samples_than_dense_marching(window):
 
 
 def test_non_finite_loss_names_the_step(window, monkeypatch):
-    import nerf.field as field_mod
+    import nerf.fields.permuto as field_mod
 
     real = field_mod.RadianceField.forward
 
@@ -68,16 +69,6 @@ def test_fixed_poses_stay_fixed_when_refinement_is_off(window):
     cfg = preset("cpu", **{**FAST, "steps": 25, "pose_warmup_steps": 0, "lr_pose": 1e-2})
     res = fit_window(window, replace(cfg, refine_poses=False))
     assert np.allclose(res.poses_c2w, window.poses_c2w, atol=1e-6)
-
-
-def test_depth_loss_fades_to_zero_over_its_share_of_the_steps():
-    from nerf.trainer import depth_weight
-
-    const = preset("cpu", steps=100, depth_loss_weight=0.1, depth_loss_fade=0.0)
-    assert depth_weight(const, 0) == depth_weight(const, 99) == 0.1
-    fade = replace(const, depth_loss_fade=0.4)
-    assert depth_weight(fade, 0) == pytest.approx(0.1) and depth_weight(fade, 20) == pytest.approx(0.05)
-    assert depth_weight(fade, 40) == 0.0 and depth_weight(fade, 99) == 0.0
 
 
 def test_depth_loss_skips_depth_edges_and_pixels_next_to_lost_depth():
@@ -98,7 +89,7 @@ def test_depth_loss_skips_depth_edges_and_pixels_next_to_lost_depth():
 
 
 def test_edge_rays_are_drawn_where_the_image_has_texture():
-    from nerf.trainer import draw_from_cdf, gradient_cdf
+    from nerf.pixel_sampling import draw_from_cdf, gradient_cdf
 
     img = torch.zeros(2, 20, 30, 3, dtype=torch.uint8)
     img[0, :, 15:] = 200            # a vertical edge between columns 14 and 15 of frame 0; frame 1 is flat
@@ -117,6 +108,7 @@ def test_edge_ray_share_fits(window):
 
 def test_registration_anneals_its_rate_draws_rays_on_texture_and_restores_the_rate(window, monkeypatch):
     import nerf.trainer as trainer
+    from nerf.pixel_sampling import gradient_cdf
     from nerf.poses import PoseCorrection
 
     model = fit_window(window, preset("cpu", **{**FAST, "steps": 20}, refine_poses=False), render_val=False).model
@@ -137,7 +129,7 @@ def test_registration_anneals_its_rate_draws_rays_on_texture_and_restores_the_ra
     opt = torch.optim.Adam(poses.parameters(), lr=1e-3)
     k = torch.tensor(window.intrinsics, dtype=torch.float32)
     trainer.register(model, poses, opt, model.poses_c2w.clone(), k, images, val, 5, torch.Generator().manual_seed(0),
-                     rays=200, anneal=0.1, edge_cdf=trainer.gradient_cdf(images[val]), edge_share=0.5)
+                     rays=200, anneal=0.1, edge_cdf=gradient_cdf(images[val]), edge_share=0.5)
     assert np.allclose(rates, [1e-3 * 0.1 ** (i / 4) for i in range(5)])
     assert opt.param_groups[0]["lr"] == 1e-3                          # restored for the next registration
     frames, u = torch.cat([f[:100] for f, _ in drawn]), torch.cat([u_[:100] for _, u_ in drawn]) - 0.5

@@ -8,9 +8,9 @@ import torch
 from stress_cases import CASES, SIZES
 
 from bench import stress
-from nerf.panoptic_losses import instance_loss
+from nerf.panoptic.losses import instance_loss
 from nerf.poses import rotation_6d
-from nerf.render import composite_weights, cone_steps, depth_guided, exclusive_cumsum_per_ray
+from nerf.render import composite_weights, cone_steps, exclusive_cumsum_per_ray
 
 DEVICES = ["cpu", pytest.param("cuda", marks=pytest.mark.skipif(not torch.cuda.is_available(), reason="no GPU"))]
 
@@ -66,14 +66,6 @@ def test_exclusive_cumsum_per_ray_example_and_infinities():
 def test_zero_near_plane_is_refused_instead_of_looping_forever():
     with pytest.raises(ValueError, match="0 < near <= far"):
         cone_steps(0.0, 2.0, 0.01, torch.device("cpu"))
-
-
-def test_non_finite_depth_is_treated_as_missing():
-    d = torch.tensor([1.0, math.nan, math.inf, -math.inf])
-    s = depth_guided(d, torch.ones(4, 3), 4, 2, 0.15, 3.5, jitter=False)
-    assert torch.isfinite(s.t_mid).all() and torch.isfinite(s.delta).all()
-    ref = depth_guided(torch.tensor([1.0, 0.0, 0.0, 0.0]), torch.ones(4, 3), 4, 2, 0.15, 3.5, jitter=False)
-    assert torch.equal(s.t_mid, ref.t_mid)
 
 
 def test_degenerate_6d_inputs_give_rotations():

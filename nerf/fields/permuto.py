@@ -12,8 +12,7 @@ from torch import Tensor, nn
 
 from nerf.config import NerfConfig
 from nerf.encoding import PermutoEncoding
-
-MAX_LOG_DENSITY = 15.0
+from nerf.fields.base import MAX_LOG_DENSITY, mlp
 
 
 def sh_deg2(d: Tensor) -> Tensor:
@@ -23,16 +22,6 @@ def sh_deg2(d: Tensor) -> Tensor:
         torch.full_like(x, 0.28209479), 0.48860251 * y, 0.48860251 * z, 0.48860251 * x,
         1.09254843 * x * y, 1.09254843 * y * z, 0.31539157 * (3 * z * z - 1), 1.09254843 * x * z,
         0.54627421 * (x * x - y * y)], -1)
-
-
-def mlp(n_in: int, hidden: int, n_hidden: int, n_out: int) -> nn.Sequential:
-    layers: list[nn.Module] = []
-    d = n_in
-    for _ in range(n_hidden):
-        layers += [nn.Linear(d, hidden), nn.ReLU(inplace=True)]
-        d = hidden
-    layers.append(nn.Linear(d, n_out))
-    return nn.Sequential(*layers)
 
 
 class RadianceField(nn.Module):
@@ -60,10 +49,6 @@ class RadianceField(nn.Module):
         """The parameters behind g_c (a 'shared' panoptic phase trains them too)."""
         return [self.grid.table]
 
-    def grid_features(self, x: Tensor) -> Tensor:
-        """g_c(x): colour-grid features [N, L*F] (the panoptic delta grid builds on these)."""
-        return self.grid(x)
-
     def density(self, x: Tensor) -> Tensor:
         h = self.density_net(self.grid(x))
         return torch.exp(h[:, 0].float().clamp(max=MAX_LOG_DENSITY))
@@ -75,20 +60,3 @@ class RadianceField(nn.Module):
         sigma = torch.exp(h[:, 0].float().clamp(max=MAX_LOG_DENSITY))
         rgb = torch.sigmoid(self.color_net(torch.cat([h, sh_deg2(d)], -1)))
         return sigma, rgb, g
-
-
-def build_field(cfg: NerfConfig, scene_scale_m: float) -> nn.Module:
-    """The radiance field cfg.field_kind names: 'permuto' (RadianceField, ours) or 'mlp_pe' (the
-    Semantic-NeRF-like baseline of nerf/baselines.py)."""
-    kind = getattr(cfg, "field_kind", "permuto")
-    if kind == "permuto":
-        return RadianceField(cfg, scene_scale_m)
-    if kind == "mlp_pe":
-        from nerf.baselines import MlpPeField
-
-        return MlpPeField(cfg, scene_scale_m)
-    raise ValueError(f"unknown field_kind {kind!r}; field kinds: ['mlp_pe', 'permuto']")
-
-
-def param_count(module: nn.Module) -> int:
-    return sum(p.numel() for p in module.parameters() if p.requires_grad)

@@ -11,15 +11,12 @@ panoptic losses can move neither density nor camera poses.
 """
 from __future__ import annotations
 
-from typing import Literal
-
 import torch
 from torch import Tensor, nn
 
+from nerf.config import GridMode
 from nerf.encoding import PermutoEncoding
-from nerf.field import mlp
-
-GridMode = Literal["delta", "shared", "independent"]
+from nerf.fields.base import mlp
 
 
 class PanopticField(nn.Module):

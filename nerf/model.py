@@ -1,0 +1,146 @@
+"""A fitted window's NeRF (NerfModel): the field, the occupancy grid, the scene normalisation and the
+cameras, with what renders it (rays in rounds with early termination, whole images) and its checkpoint."""
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+
+import torch
+from torch import Tensor
+
+from nerf.config import NerfConfig, config_from_state
+from nerf.fields import Field, build_field
+from nerf.occupancy import OccupancyGrid
+from nerf.render import Rounds, Samples, accumulate, composite_weights, cone_steps, pixel_rays
+from nerf.window import Scene
+
+
+@dataclass
+class NerfModel:
+    """Everything needed to render a window again: field, occupancy grid, normalisation, poses."""
+
+    cfg: NerfConfig
+    field: Field
+    grid: OccupancyGrid
+    scene: Scene
+    poses_c2w: Tensor
+    intrinsics: Tensor
+    wh: tuple[int, int]
+    extras: dict = field(default_factory=dict)
+
+    def state(self) -> dict:
+        return {"cfg": asdict(self.cfg), "field": self.field.state_dict(), "grid": self.grid.state_dict(),
+                "scene": {"centre": self.scene.centre, "scale_m": self.scene.scale_m, "lo": self.scene.lo,
+                          "hi": self.scene.hi},
+                "poses_c2w": self.poses_c2w, "intrinsics": self.intrinsics, "wh": self.wh, "extras": self.extras}
+
+    @classmethod
+    def from_state(cls, state: dict, device: str = "cpu") -> "NerfModel":
+        cfg = config_from_state(NerfConfig, state["cfg"])
+        sc = state["scene"]
+        scene = Scene(sc["centre"], sc["scale_m"], sc["lo"], sc["hi"]).to(device)
+        fld = build_field(cfg, scene.scale_m).to(device)
+        fld.load_state_dict(state["field"])
+        return cls(cfg, fld, OccupancyGrid.from_state({k: v.to(device) for k, v in state["grid"].items()}), scene,
+                   state["poses_c2w"].to(device), state["intrinsics"].to(device), tuple(state["wh"]),
+                   state.get("extras", {}))
+
+    def edges(self, device) -> Tensor:
+        step = self.cfg.step_scale / float(self.intrinsics[:, 0].mean())
+        return cone_steps(self.cfg.near_m, self.cfg.far_m, step, device)
+
+    def occupied_fn(self):
+        if self.cfg.skip_empty:
+            return self.grid
+        lo, hi = self.scene.lo, self.scene.hi
+        return lambda p: ((p >= lo) & (p <= hi)).all(-1)
+
+    def shade(self, o: Tensor, d: Tensor, s: Samples) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """Field at packed samples -> (sigma [S], rgb [S, 3], world points [S, 3], features [S, feature_dim])."""
+        x = o[s.ray_index] + d[s.ray_index] * s.t_mid[:, None]
+        dn = torch.nn.functional.normalize(d[s.ray_index], dim=-1)
+        sigma, rgb, g = self.field(self.scene.normalise(x), dn)
+        return sigma, rgb, x, g
+
+    @torch.no_grad()
+    def render_rays(self, o: Tensor, d: Tensor, round_samples: int = 32) -> dict[str, Tensor]:
+        """Render rays in rounds of occupied samples per ray (8, 16, then `round_samples` each: most rays
+        meet an opaque surface within their first few occupied samples), dropping rays whose
+        transmittance fell below cfg.early_stop_transmittance (or that have no samples left)."""
+        n = o.shape[0]
+        edges = self.edges(o.device)
+        occ = self.occupied_fn()
+        rgb = torch.zeros(n, 3, device=o.device)
+        depth = torch.zeros(n, device=o.device)
+        trans = torch.ones(n, device=o.device)
+        active = torch.arange(n, device=o.device)
+        n_samples = 0
+        eps = self.cfg.early_stop_transmittance
+        first = 0
+        rounds = Rounds(o, d, edges, occ)
+        while active.numel():
+            per_ray = min(round_samples, 8 << min(first // 8, 2)) if self.cfg.skip_empty else round_samples
+            s = rounds.take(active, first, per_ray)
+            first += per_ray
+            if len(s) == 0:
+                break
+            sigma, col, _, _ = self.shade(o[active], d[active], s)
+            w, left = composite_weights(sigma, s.delta, s.ray_index, s.n_rays)
+            w = w * trans[active][s.ray_index]
+            rgb.index_add_(0, active, accumulate(col, w, s.ray_index, s.n_rays))
+            depth.index_add_(0, active, accumulate(s.t_mid, w, s.ray_index, s.n_rays))
+            had = torch.bincount(s.ray_index, minlength=s.n_rays) >= per_ray
+            trans[active] = trans[active] * left
+            n_samples += len(s)
+            active = active[had & (trans[active] > eps)]
+        opacity = 1 - trans
+        return {"rgb": rgb, "depth": depth / opacity.clamp_min(1e-6), "opacity": opacity,
+                "samples_per_ray": torch.tensor(n_samples / max(n, 1))}
+
+    def image_pixels(self, i: int | None = None, c2w: Tensor | None = None,
+                     k: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """Pose and intrinsics of frame i (or the given ones) and the pixel centres u, v [H*W] of a full image."""
+        w, h = self.wh
+        c2w = self.poses_c2w[i] if c2w is None else c2w
+        k = self.intrinsics[i] if k is None else k
+        dev = c2w.device
+        v, u = torch.meshgrid(torch.arange(h, device=dev) + 0.5, torch.arange(w, device=dev) + 0.5, indexing="ij")
+        return c2w, k, u.reshape(-1), v.reshape(-1)
+
+    @torch.no_grad()
+    def render_image(self, i: int | None = None, c2w: Tensor | None = None, k: Tensor | None = None) -> dict[str, Tensor]:
+        """Full image of frame i (or of a given pose/intrinsics): rgb [H, W, 3], depth [H, W], opacity."""
+        w, h = self.wh
+        c2w, k, u, v = self.image_pixels(i, c2w, k)
+        outs = {"rgb": [], "depth": [], "opacity": []}
+        total = 0.0
+        for s in range(0, u.shape[0], self.cfg.chunk_rays):
+            uu, vv = u[s:s + self.cfg.chunk_rays], v[s:s + self.cfg.chunk_rays]
+            o, d = pixel_rays(k.expand(uu.shape[0], 4), c2w.expand(uu.shape[0], 4, 4), uu, vv)
+            r = self.render_rays(o, d)
+            total += float(r["samples_per_ray"]) * uu.shape[0]
+            for key in outs:
+                outs[key].append(r[key])
+        out = {key: torch.cat(v).reshape(h, w, -1).squeeze(-1) for key, v in outs.items()}
+        out["samples_per_ray"] = total / (h * w)
+        return out
+
+
+@torch.no_grad()
+def init_occupancy(model: NerfModel, depths: Tensor, c2w: Tensor, k: Tensor, stride: int = 2) -> None:
+    """Occupied cells from the back-projected sensor depth (with the odometry poses), plus cells along
+    rays without valid depth (the sensor saw nothing there, so anything may be there)."""
+    n, h, w = depths.shape
+    v, u = torch.meshgrid(torch.arange(0, h, stride, device=depths.device) + 0.5,
+                          torch.arange(0, w, stride, device=depths.device) + 0.5, indexing="ij")
+    u, v = u.reshape(-1), v.reshape(-1)
+    surf, free_o, free_d = [], [], []
+    for i in range(n):
+        dd = depths[i, v.long(), u.long()]
+        o, d = pixel_rays(k[i].expand(u.shape[0], 4), c2w[i].expand(u.shape[0], 4, 4), u, v)
+        ok = (dd > model.cfg.near_m) & (dd < model.cfg.far_m)
+        surf.append(o[ok] + d[ok] * dd[ok, None])
+        free_o.append(o[~ok])
+        free_d.append(d[~ok])
+    t = torch.linspace(model.cfg.near_m, model.cfg.far_m, 64, device=depths.device)
+    fo, fd = torch.cat(free_o), torch.cat(free_d)
+    model.grid.init_from_points(torch.cat(surf), (fo, fd, t) if len(fo) else None, dilate=model.cfg.occupancy_dilate)
