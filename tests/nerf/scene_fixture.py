@@ -5,6 +5,11 @@ from nerf.window import WindowData
 from stages import synth
 from synthetic import render, scene, trajectory
 
+SHORT_FIT = dict(steps=100, rays_per_step=256, occupancy_every=20, val_register_every=30, val_register_steps=2,
+                 pose_warmup_steps=20, n_levels=6, log2_capacity=12)
+"""preset overrides of a colour fit of tiny_window() that learns it visibly within a few seconds (poses refined
+from step 20)."""
+
 
 def tiny_window(n=6, w=40, h=24, seed=0, labels=False):
     """WindowData of n frames (odd ones train); with labels=True also the ground-truth semantic and

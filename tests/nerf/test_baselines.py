@@ -7,7 +7,6 @@ import pytest
 import torch
 
 sys.path.insert(0, str(Path(__file__).parent))
-from scene_fixture import tiny_window  # noqa: E402
 
 from nerf.baselines import PANOPTIC_LIFTING_LIKE, SEMANTIC_ONLY  # noqa: E402
 from nerf.config import PanopticConfig, preset  # noqa: E402
@@ -28,8 +27,8 @@ PAN = PanopticConfig(steps=40, frames_per_step=2, rays_per_frame=256, min_segmen
 
 
 @pytest.fixture(scope="module")
-def mlp_fit():
-    data, sem, inst = tiny_window(n=6, w=40, h=24, labels=True)
+def mlp_fit(labelled_window):
+    data, sem, inst = labelled_window
     res = fit_window(data, preset("cpu", field_kind="mlp_pe", **FAST))
     return data, sem, inst, res
 
@@ -93,8 +92,8 @@ def test_mlp_field_refuses_a_delta_grid(mlp_fit):
         fit_panoptic(res.model, labels, data.is_train, data.depths, replace(PAN, grid_mode="delta"))
 
 
-def test_panoptic_lifting_like_config_trains_instances_on_the_shared_grid():
-    data, sem, inst = tiny_window(n=6, w=40, h=24, labels=True)
+def test_panoptic_lifting_like_config_trains_instances_on_the_shared_grid(labelled_window):
+    data, sem, inst = labelled_window
     res = fit_window(data, preset("cpu", n_levels=6, log2_capacity=12, **FAST))
     labels = WindowLabels(sem.astype(np.uint8), inst, np.ones(sem.shape, np.float32))
     before = res.model.field.grid.table.detach().clone()

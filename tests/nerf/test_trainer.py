@@ -7,23 +7,15 @@ import pytest
 import torch
 
 sys.path.insert(0, str(Path(__file__).parent))
-from scene_fixture import tiny_window  # noqa: E402
+from scene_fixture import SHORT_FIT as FAST  # noqa: E402
 
 from nerf.config import preset  # noqa: E402
 from nerf.model import NerfModel  # noqa: E402
 from nerf.trainer import NonFiniteLoss, fit_window  # noqa: E402
 
-FAST = dict(steps=100, rays_per_step=256, occupancy_every=20, val_register_every=30, val_register_steps=2,
-            pose_warmup_steps=20, n_levels=6, log2_capacity=12)
 
-
-@pytest.fixture(scope="module")
-def window():
-    return tiny_window()
-
-
-def test_fit_learns_the_window_and_reloads(window, tmp_path):
-    res = fit_window(window, preset("cpu", **FAST))
+def test_fit_learns_the_window_and_reloads(window, short_fit, tmp_path):
+    res = short_fit
     first, last = res.history[0]["psnr"], res.history[-1]["psnr"]
     assert last > first + 1.5
     assert np.isfinite(list(res.val_psnr.values())).all() and res.samples_per_ray > 0
@@ -101,17 +93,17 @@ def test_edge_rays_are_drawn_where_the_image_has_texture():
 
 
 def test_edge_ray_share_fits(window):
-    cfg = replace(preset("cpu"), steps=30, rays_per_step=256, edge_ray_share=0.5, refine_poses=False)
+    cfg = preset("cpu", **{**FAST, "steps": 30}, edge_ray_share=0.5, refine_poses=False)
     res = fit_window(window, cfg, render_val=False)
     assert np.isfinite(res.train_psnr) and res.history[-1]["samples_per_ray"] > 0
 
 
-def test_registration_anneals_its_rate_draws_rays_on_texture_and_restores_the_rate(window, monkeypatch):
+def test_registration_anneals_its_rate_draws_rays_on_texture_and_restores_the_rate(window, short_fit, monkeypatch):
     import nerf.trainer as trainer
     from nerf.pixel_sampling import gradient_cdf
     from nerf.poses import PoseCorrection
 
-    model = fit_window(window, preset("cpu", **{**FAST, "steps": 20}, refine_poses=False), render_val=False).model
+    model = short_fit.model
     images = torch.from_numpy(window.images).clone()
     val = torch.from_numpy(np.flatnonzero(~window.is_train))
     images[val] = 40
