@@ -1,0 +1,130 @@
+"""The panoptic phase on a fitted tiny window (nerf/panoptic/train.py, render.py, result.py)."""
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+sys.path.insert(0, str(Path(__file__).parent))
+from scene_fixture import tiny_window  # noqa: E402
+
+from nerf.config import PanopticConfig, preset  # noqa: E402
+from nerf.panoptic.labels import WindowLabels  # noqa: E402
+from nerf.panoptic.render import render_panoptic  # noqa: E402
+from nerf.panoptic.result import load_panoptic  # noqa: E402
+from nerf.panoptic.train import fit_panoptic  # noqa: E402
+from nerf.panoptic_metrics import dominant_ids  # noqa: E402
+from nerf.trainer import fit_window  # noqa: E402
+
+COLOUR = dict(steps=120, rays_per_step=512, occupancy_every=30, refine_poses=False, n_levels=8, log2_capacity=14)
+FAST = PanopticConfig(steps=300, frames_per_step=2, rays_per_frame=256, min_segment_px=3)
+
+
+def detector_like(sem: np.ndarray, inst: np.ndarray, seed: int = 0) -> WindowLabels:
+    """Ground truth with per-frame shuffled instance ids (what a still-image detector gives)."""
+    rng = np.random.default_rng(seed)
+    out = np.zeros_like(inst)
+    for i in range(len(inst)):
+        ids = np.unique(inst[i][inst[i] > 0])
+        new = rng.permutation(len(ids)) + 1
+        for a, b in zip(ids, new):
+            out[i][inst[i] == a] = b
+    return WindowLabels(sem.astype(np.uint8), out, np.ones(sem.shape, np.float32))
+
+
+@pytest.fixture(scope="module")
+def fitted():
+    data, sem, inst = tiny_window(n=8, w=80, h=45, labels=True)
+    res = fit_window(data, preset("cpu", **COLOUR))
+    return data, sem, inst, res.model
+
+
+def test_panoptic_phase_renders_the_classes_and_one_id_per_fruit(fitted):
+    data, sem, inst, model = fitted
+    labels = detector_like(sem, inst)
+    pres = fit_panoptic(model, labels, data.is_train, data.depths, FAST)
+    assert pres.assignments > 0 and pres.history[-1]["loss"] < pres.history[0]["loss"]
+    val = np.flatnonzero(~data.is_train)
+    correct = total = 0
+    per_frame = []
+    for i in val:
+        r = render_panoptic(model, pres, int(i))
+        assert r["semantic"].shape == sem[i].shape and r["instance"].dtype == np.int32
+        assert set(np.unique(r["instance"][np.isin(r["semantic"], [0, 1])])) <= {0}  # stuff carries no id
+        correct += int((r["semantic"] == sem[i]).sum())
+        total += sem[i].size
+        big = [f for f, n in zip(*np.unique(inst[i], return_counts=True)) if f > 0 and n >= 30]
+        per_frame.append(dominant_ids(inst[i], r["instance"], big))
+    majority = max(np.mean(sem[val] == c) for c in np.unique(sem))
+    assert correct / total > max(0.7, majority + 0.1)
+    # a fruit seen large enough in several validation frames keeps one id in all of them
+    seen: dict[int, set[int]] = {}
+    for frame in per_frame:
+        for f, p in frame.items():
+            seen.setdefault(f, set()).add(p)
+    multi = [f for f in seen if sum(f in fr for fr in per_frame) >= 2]
+    assert multi, "the fixture should show some fruit in several validation frames"
+    consistent = [f for f in multi if len(seen[f]) == 1 and 0 not in seen[f]]
+    assert len(consistent) >= 0.6 * len(multi)
+
+
+def test_checkpoint_round_trip_renders_the_same(fitted):
+    data, sem, inst, model = fitted
+    cfg = PanopticConfig(steps=10, frames_per_step=2, rays_per_frame=64)
+    pres = fit_panoptic(model, detector_like(sem, inst), data.is_train, data.depths, cfg)
+    again = load_panoptic(pres.state(), model)
+    a, b = render_panoptic(model, pres, 1), render_panoptic(model, again, 1)
+    assert np.array_equal(a["semantic"], b["semantic"]) and np.array_equal(a["instance"], b["instance"])
+
+
+def test_all_void_labels_train_nothing_and_still_render(fitted):
+    data, sem, _, model = fitted
+    void = WindowLabels(np.full(sem.shape, 255, np.uint8), np.zeros(sem.shape, np.int32), np.zeros(sem.shape, np.float32))
+    pres = fit_panoptic(model, void, data.is_train, data.depths, PanopticConfig(steps=5))
+    assert pres.steps == 0 and pres.assignments == 0
+    r = render_panoptic(model, pres, 0)
+    assert np.isfinite(r["rgb"].numpy()).all() and r["semantic"].max() < 5
+
+
+def test_window_without_fruit_detections_skips_the_instance_part(fitted):
+    data, sem, inst, model = fitted
+    plant = np.where(np.isin(sem, [2, 3, 4]), 1, sem).astype(np.uint8)   # the detector saw no fruit at all
+    labels = WindowLabels(plant, np.zeros_like(inst), np.ones(sem.shape, np.float32))
+    cfg = PanopticConfig(steps=40, stuff_only_steps=10, frames_per_step=2, rays_per_frame=64)
+    pres = fit_panoptic(model, labels, data.is_train, data.depths, cfg)
+    assert pres.instances_skipped and pres.steps == 10 and pres.assignments == 0 and not pres.cfg.instances
+    assert pres.params < fit_panoptic(model, detector_like(sem, inst), data.is_train, data.depths,
+                                      PanopticConfig(steps=1)).params            # instance head not counted
+    r = render_panoptic(model, load_panoptic(pres.state(), model), 1)
+    assert (r["instance"] == 0).all()
+
+
+def test_nan_confidence_is_treated_as_zero():
+    lab = WindowLabels(np.zeros((1, 2, 2), np.uint8), np.zeros((1, 2, 2), np.int32),
+                       np.array([[[np.nan, 1.0], [np.inf, -1.0]]], np.float32))
+    assert np.array_equal(lab.confidence, np.array([[[0.0, 1.0], [1.0, 0.0]]], np.float32))
+
+
+def test_grow_threshold_outside_0_1_is_a_clear_error():
+    with pytest.raises(ValueError, match="grow_threshold"):
+        PanopticConfig(grow_threshold=-0.1)
+
+
+def test_stuff_confidence_outside_0_1_is_a_clear_error():
+    with pytest.raises(ValueError, match="stuff_confidence"):
+        PanopticConfig(stuff_confidence=1.5)
+
+
+def test_too_few_slots_is_a_clear_error(fitted):
+    data, sem, inst, model = fitted
+    with pytest.raises(ValueError, match="n_slots"):
+        fit_panoptic(model, detector_like(sem, inst), data.is_train, data.depths, PanopticConfig(n_slots=3, steps=1))
+
+
+def test_panoptic_phase_leaves_the_colour_model_alone(fitted):
+    data, sem, inst, model = fitted
+    before = [p.detach().clone() for p in model.field.parameters()]
+    fit_panoptic(model, detector_like(sem, inst), data.is_train, data.depths,
+                 PanopticConfig(steps=5, frames_per_step=2, rays_per_frame=64))
+    assert all(torch.equal(a, b) for a, b in zip(before, model.field.parameters()))

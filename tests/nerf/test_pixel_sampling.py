@@ -1,0 +1,29 @@
+"""Which pixels a training step draws (nerf/pixel_sampling.py)."""
+import numpy as np
+import torch
+
+
+def test_thing_oversampling_is_undone_by_importance_weights():
+    from nerf.pixel_sampling import draw_label_pixels
+
+    sem = np.ones((40, 50), np.uint8)
+    things = np.zeros((40, 50), bool)
+    things[:4, :5] = True                        # 1 % of the pixels are fruit
+    sem[things] = 4
+    px, w = draw_label_pixels(sem != 255, things, 20000, 0.5, np.random.default_rng(0))
+    on = things.ravel()[px]
+    assert 0.45 < on.mean() < 0.55                # half the rays land on fruit ...
+    assert abs((w * on).sum() / w.sum() - 0.01) < 0.003   # ... but weigh as 1 % of the image
+    assert w.max() == 1.0 and (w > 0).all()
+
+
+def test_edge_rays_are_drawn_where_the_image_has_texture():
+    from nerf.pixel_sampling import draw_from_cdf, gradient_cdf
+
+    img = torch.zeros(2, 20, 30, 3, dtype=torch.uint8)
+    img[0, :, 15:] = 200            # a vertical edge between columns 14 and 15 of frame 0; frame 1 is flat
+    pick = draw_from_cdf(gradient_cdf(img), 4000, torch.Generator().manual_seed(0))
+    frame, col = pick // (20 * 30), pick % 30
+    on_edge = (frame == 0) & ((col == 14) | (col == 15))
+    assert on_edge.float().mean() > 0.8           # 40 of 1200 pixels carry the edge
+    assert (frame == 1).any()                     # the floor keeps every pixel drawable
