@@ -25,6 +25,7 @@ TABLES: tuple[str, ...] = (
     "fruits",
     "counts",
     "evaluation",
+    "campaign_rows",
     "bench_encoding",
 )
 

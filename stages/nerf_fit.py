@@ -1,7 +1,6 @@
 """Fit one NeRF per window (Dask, one task per window) with online pose refinement; render validation frames."""
 from __future__ import annotations
 
-import os
 import traceback
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -257,7 +256,7 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
         payloads[str(wid)] = window_payload(int(wid), w, cfg, mcfg, ctx.device, out_dir, ctx.data_root,
                                             _window_detections(dets, w))
     n_workers = cfg.workers or parallel.default_workers(len(payloads))
-    threads = cfg.threads_per_worker or max(1, (os.cpu_count() or 1) // n_workers)
+    threads = parallel.task_threads(cfg.threads_per_worker, n_workers)
     outcomes = parallel.map_tasks(fit_one, payloads, n_workers=n_workers, threads_per_worker=threads,
                                   scheduler=ctx.scheduler, show_progress=ctx.show_progress, desc="window")
     pose_tables, metric_rows = [], []
@@ -267,7 +266,8 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
         centre = int(windows.loc[windows.window_id == wid, "center_frame_id"].iloc[0])
         w = windows[windows.window_id == wid]
         base = {"window_id": wid, "center_frame_id": centre, "preset": mcfg.preset, "device": ctx.device,
-                "n_train": int((w.split == "train").sum()), "n_val": int((w.split == "val").sum())}
+                "n_train": int((w.split == "train").sum()), "n_val": int((w.split == "val").sum()),
+                "worker": o.worker}
         if o.error is not None:
             msg = str(o.error).splitlines()[0] if str(o.error) else type(o.error).__name__
             ctx.note(f"window {wid} failed: {msg}")
