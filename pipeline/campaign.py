@@ -65,17 +65,24 @@ def as_overrides(mapping: dict[str, Any], prefix: str = "") -> list[str]:
     return out
 
 
-def row_overrides(seqs: list[str], config_file: Path | None, overrides: list[str]) -> dict[str, list[str]]:
+def is_synthetic_name(seq: str, data_root: Path) -> bool:
+    """A row `pag synth` may (re)write: its name starts with 'synth' or its raw folder was written by it."""
+    return seq.startswith("synth") or (Path(data_root) / "raw" / seq / "gt" / "synth_config.yaml").is_file()
+
+
+def row_overrides(seqs: list[str], config_file: Path | None, overrides: list[str],
+                  data_root: Path = Path("data")) -> dict[str, list[str]]:
     """Each row's settings as --set items: the config file's sections, then its rows.<SEQ> section, then the
-    command line's --set (which wins)."""
+    command line's --set (which wins). Settings of the synth section given for all rows reach only synthetic
+    rows (is_synthetic_name): for a recorded row they would make the runner regenerate its raw folder."""
     raw = cfgmod.load_file(config_file)
     rows = raw.pop(ROWS_SECTION, None) or {}
     if not isinstance(rows, dict):
         raise cfgmod.ConfigError(f"config file {config_file}: '{ROWS_SECTION}' must map sequence names to sections, "
                                  f"got {rows!r}")
-    unknown = sorted(set(rows) - set(seqs))
-    if unknown:
-        raise cfgmod.ConfigError(f"config file {config_file}: {ROWS_SECTION}: {unknown} are not in --seqs {seqs}")
+    unused = sorted(set(rows) - set(seqs))
+    if unused:  # a season's file may list more rows than one campaign runs; a misspelt name shows here
+        print(f"[pag campaign] {config_file}: settings of {ROWS_SECTION} {unused} unused (not in --seqs)", file=sys.stderr)
     base = as_overrides(raw)
     out = {}
     for seq in seqs:
@@ -83,7 +90,10 @@ def row_overrides(seqs: list[str], config_file: Path | None, overrides: list[str
         if not isinstance(per_row, dict):
             raise cfgmod.ConfigError(f"config file {config_file}: {ROWS_SECTION}.{seq} must be a mapping of "
                                      f"sections, got {per_row!r}")
-        out[seq] = base + as_overrides(per_row) + list(overrides)
+        common = (base, list(overrides))
+        if not is_synthetic_name(seq, data_root):
+            common = tuple([o for o in items if not o.strip().startswith("synth.")] for items in common)
+        out[seq] = common[0] + as_overrides(per_row) + common[1]
     return out
 
 
@@ -113,7 +123,7 @@ def run_rows(seqs: list[str], data_root: Path = Path("data"), config_file: Path 
              show_progress: bool | None = None) -> list[RowOutcome]:
     """Run every stage of every row (rows concurrently, windows on one cluster); one outcome per row, in order."""
     check_seqs(seqs)
-    per_row = row_overrides(seqs, config_file, list(overrides))
+    per_row = row_overrides(seqs, config_file, list(overrides), data_root)
     lock = threading.Lock()
     outcomes = {seq: RowOutcome(seq) for seq in seqs}
     runners: dict[str, Runner] = {}
