@@ -47,6 +47,8 @@ def row_label(row: pd.Series) -> str:
 def counts_chart(rows: pd.DataFrame) -> str:
     """Grouped bars: counted fruits per row (x) and class (bar colour)."""
     plt = _pyplot()
+    from matplotlib.ticker import MaxNLocator
+
     fig, ax = plt.subplots(figsize=(max(5.0, 1.1 * len(rows) + 2), 3.6), dpi=110)
     x = np.arange(len(rows))
     width = 0.8 / len(THINGS)
@@ -56,6 +58,7 @@ def counts_chart(rows: pd.DataFrame) -> str:
                       edgecolor="k", linewidth=0.4, label=c.name)
         ax.bar_label(bars, fmt="%d", fontsize=7)
     ax.set_xticks(x, [row_label(r) for _, r in rows.iterrows()], fontsize=8)
+    ax.yaxis.set_major_locator(MaxNLocator(integer=True))
     ax.set_ylabel("counted fruits")
     ax.set_title("Fruits per row and class")
     ax.grid(axis="y", alpha=0.3)
