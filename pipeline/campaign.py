@@ -46,11 +46,11 @@ class _RowRunner(Runner):
         super().__init__(*args, **kwargs)
         self.local_lock = local_lock
 
-    def run_stage(self, s: dag.Stage, force: bool = False) -> StageResult:
+    def run_stage(self, s: dag.Stage, *args: Any, **kwargs: Any) -> StageResult:
         if s.name == "nerf_fit":
-            return super().run_stage(s, force=force)
+            return super().run_stage(s, *args, **kwargs)
         with self.local_lock:
-            return super().run_stage(s, force=force)
+            return super().run_stage(s, *args, **kwargs)
 
 
 def as_overrides(mapping: dict[str, Any], prefix: str = "") -> list[str]:

@@ -12,7 +12,7 @@ import pyarrow.parquet as pq
 import yaml
 
 from campaign_fixture import SEQS, campaign_args
-from pipeline import cli
+from pipeline import cli, parallel
 from pipeline.classes import DEFAULT_CLASSES
 
 
@@ -126,8 +126,14 @@ def test_campaign_report_is_one_self_contained_page_linking_each_row(local_campa
         assert (camp(root) / link).is_file()
 
 
-def test_second_campaign_skips_up_to_date_rows_and_reports_a_failing_row(local_campaign, tmp_path, capsys):
+def test_second_campaign_skips_up_to_date_rows_and_reports_a_failing_row(local_campaign, tmp_path, capsys,
+                                                                        monkeypatch):
     src, config = local_campaign
+
+    def no_cluster(*args, **kwargs):
+        raise AssertionError("a campaign with nothing to fit started a cluster")
+
+    monkeypatch.setattr(parallel, "client_for", no_cluster)
     root = tmp_path / "data"
     shutil.copytree(src, root)
     before = pq.read_table(camp(root) / "fruits").num_rows
