@@ -45,8 +45,11 @@ class _RowRunner(Runner):
     def __init__(self, *args: Any, local_lock: threading.Lock, **kwargs: Any):
         super().__init__(*args, **kwargs)
         self.local_lock = local_lock
+        self.current_stage = ""
+        """the stage running (or last run): names the stage a failure came from."""
 
     def run_stage(self, s: dag.Stage, *args: Any, **kwargs: Any) -> StageResult:
+        self.current_stage = s.name
         if s.name == "nerf_fit":
             return super().run_stage(s, *args, **kwargs)
         with self.local_lock:
@@ -126,7 +129,7 @@ def run_rows(seqs: list[str], data_root: Path = Path("data"), config_file: Path 
     per_row = row_overrides(seqs, config_file, list(overrides), data_root)
     lock = threading.Lock()
     outcomes = {seq: RowOutcome(seq) for seq in seqs}
-    runners: dict[str, Runner] = {}
+    runners: dict[str, _RowRunner] = {}
     for seq in seqs:
         try:
             runners[seq] = _RowRunner(seq, data_root=data_root, overrides=per_row[seq], local_lock=lock,
@@ -148,7 +151,8 @@ def run_rows(seqs: list[str], data_root: Path = Path("data"), config_file: Path 
             for r in runners[seq].run(force=force):
                 (out.ran if r.status == "ran" else out.skipped).append(r.stage)
         except Exception as err:
-            out.status, out.error = "failed", f"{type(err).__name__}: {err}"
+            stage = runners[seq].current_stage
+            out.status, out.error = "failed", (f"stage {stage}: " if stage else "") + f"{type(err).__name__}: {err}"
         out.seconds = time.perf_counter() - t0
         print(f"[pag campaign] {seq}: {out.status} in {out.seconds:.1f} s ({len(out.ran)} stages ran, "
               f"{len(out.skipped)} up to date)" + (f": {out.error}" if out.error else ""), file=sys.stderr)

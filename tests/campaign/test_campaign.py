@@ -138,16 +138,19 @@ def test_second_campaign_skips_up_to_date_rows_and_reports_a_failing_row(local_c
     shutil.copytree(src, root)
     before = pq.read_table(camp(root) / "fruits").num_rows
     capsys.readouterr()
+    (root / "raw" / "empty_row").mkdir()  # a recorded row's folder with nothing in it: ingest fails
     args = campaign_args(root, config)
-    rc = cli.main(args[:2] + [*SEQS, "missing_row"] + args[2 + len(SEQS):])
+    rc = cli.main(args[:2] + [*SEQS, "missing_row", "empty_row"] + args[2 + len(SEQS):])
     err = capsys.readouterr().err
     assert rc == 1
     assert "row missing_row failed" in err and "sequence 'missing_row' not found" in err
+    assert "row empty_row failed: stage ingest: " in err
     for seq in SEQS:  # every stage of the finished rows is up to date
         assert re.search(rf"{seq}: ok in [\d.]+ s \(0 stages ran, [1-9]\d* up to date\)", err), err
     assert "nerf_fit: running" not in err
     rows = pd.read_parquet(camp(root) / "rows.parquet").set_index("seq")
     assert rows.loc["missing_row", "status"] == "failed" and "not found" in rows.loc["missing_row", "error"]
+    assert rows.loc["empty_row", "error"].startswith("stage ingest: ")
     assert (rows.loc[list(SEQS), "status"] == "ok").all()
     assert pq.read_table(camp(root) / "fruits").num_rows == before
     assert not (camp(root) / "fruits" / "seq=missing_row").exists()
