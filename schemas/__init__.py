@@ -26,6 +26,7 @@ TABLES: tuple[str, ...] = (
     "fruits",
     "counts",
     "evaluation",
+    "campaign_rows",
     "bench_encoding",
 )
 

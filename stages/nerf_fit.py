@@ -262,7 +262,7 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
     # workers and threads follow the whole row, also when some windows are reused: a window's fit is then
     # computed with the same thread count as in an uninterrupted run
     n_workers = cfg.workers or parallel.default_workers(len(payloads))
-    threads = cfg.threads_per_worker or max(1, (os.cpu_count() or 1) // n_workers)
+    threads = parallel.task_threads(cfg.threads_per_worker, n_workers)
     resume = ctx.resume_dir.resolve() if ctx.resume_dir is not None else None
     outcomes: dict[str, parallel.TaskOutcome] = {}
     if resume is not None:
@@ -292,7 +292,8 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
         centre = int(windows.loc[windows.window_id == wid, "center_frame_id"].iloc[0])
         w = windows[windows.window_id == wid]
         base = {"window_id": wid, "center_frame_id": centre, "preset": mcfg.preset, "device": ctx.device,
-                "n_train": int((w.split == "train").sum()), "n_val": int((w.split == "val").sum())}
+                "n_train": int((w.split == "train").sum()), "n_val": int((w.split == "val").sum()),
+                "worker": o.worker}
         if o.error is not None:
             msg = str(o.error).splitlines()[0] if str(o.error) else type(o.error).__name__
             ctx.note(f"window {wid} failed: {msg}")
