@@ -31,3 +31,19 @@ def test_bad_rle_is_a_clear_error():
         coco.decode({"size": [2, 2], "counts": [1, 1]})
     with pytest.raises(ValueError, match="not a COCO RLE"):
         coco.decode({"counts": "22"})
+
+
+def test_hand_written_codec_agrees_with_pycocotools_on_the_synthetic_annotations(tiny_raw):
+    import json
+
+    from pycocotools import mask as cocomask
+
+    ann = json.loads((tiny_raw / "annotations.json").read_text())
+    assert ann["annotations"]
+    for a in ann["annotations"]:
+        rle = a["segmentation"]
+        ours = coco.decode(rle)
+        theirs = cocomask.decode({"size": rle["size"], "counts": rle["counts"].encode()}).astype(bool)
+        assert np.array_equal(ours, theirs)
+        assert cocomask.encode(np.asfortranarray(ours.astype(np.uint8)))["counts"].decode() == rle["counts"]
+        assert int(cocomask.area({"size": rle["size"], "counts": rle["counts"].encode()})) == a["area"]
