@@ -35,6 +35,11 @@ IMAGES_JSON = "images.json"
 """Sibling file with the COCO `images` list (id, file_name) for a results JSON that is a bare list."""
 
 
+class UnreadableLabels(IngestError):
+    """A frame's detector PNG is missing or cannot be decoded (ingest skips the frame's detections, counted,
+    or stops, per ingest.on_bad_image)."""
+
+
 @dataclass
 class FrameLabels:
     semantic: np.ndarray
@@ -254,7 +259,7 @@ def panoptic_ids(png: np.ndarray) -> np.ndarray:
 def read_panoptic_png(path: Path) -> np.ndarray:
     img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if img is None:
-        raise IngestError(f"panoptic PNG {path} is missing or not a readable PNG")
+        raise UnreadableLabels(f"panoptic PNG {path} is {'not a readable PNG' if path.is_file() else 'missing'}")
     if img.ndim != 3 or img.shape[2] < 3 or img.dtype != np.uint8:
         raise IngestError(f"panoptic PNG {path}: expected 8-bit RGB (id = R + 256 G + 256^2 B), got {img.dtype} "
                           f"{img.shape}")
@@ -390,7 +395,9 @@ class CocoInstances:
         h, w = shape
         if semantic_png is not None:
             raw_sem = cv2.imread(str(semantic_png), cv2.IMREAD_UNCHANGED)
-            if raw_sem is None or raw_sem.ndim != 2 or raw_sem.dtype != np.uint8:
+            if raw_sem is None:
+                raise UnreadableLabels(f"detector semantic PNG {semantic_png} is not a readable PNG")
+            if raw_sem.ndim != 2 or raw_sem.dtype != np.uint8:
                 raise IngestError(f"detector semantic PNG {semantic_png} is not a readable 8-bit single-channel PNG")
             if raw_sem.shape != shape:
                 raise IngestError(f"detector semantic PNG {semantic_png} is {raw_sem.shape[1]}x{raw_sem.shape[0]}; the "

@@ -16,7 +16,8 @@ from pipeline.images import ImageError, read_label, write_png
 from pipeline.stage import StageContext
 from sources.common import (FrameSource, IngestError, depth_to_mm, interpolate_poses, pair_nearest, stamp_from_name,
                             txyzq_from_pose)
-from sources.detections import ClassMapper, CocoInstances, CocoPanoptic, detect_format, load_class_map, match_stamps
+from sources.detections import (ClassMapper, CocoInstances, CocoPanoptic, UnreadableLabels, detect_format,
+                                load_class_map, match_stamps)
 from sources.png_folder import PngFolder
 from sources.rosbag import RosBag, Topics, is_ros2_dir
 
@@ -71,10 +72,14 @@ class Config:
     its pixels unlabelled (void, 255) and drop its segments ('void'); how many were voided is counted."""
     annotations: str = "annotations.json"
     """COCO annotations of the labelled frames, in the raw folder."""
+    min_frame_gap_ms: float = 1.0
+    """a colour frame less than this after the previous one is a duplicate (a re-sent or twice-saved image):
+    skipped and counted. Keep it well under the frame period (66 ms at 15 fps)."""
     match_tolerance_ms: float = 1.0
     """detector / annotation files match a frame when their name's stamp is this close."""
     on_bad_image: Literal["skip", "error"] = "skip"
-    """a colour or depth image that cannot be decoded: skip the frame (counted) or stop with an error."""
+    """a colour, depth or detector image that is missing or cannot be decoded: skip the frame (its detections
+    only, for a detector image; counted and named in the summary) or stop with an error."""
     max_frames: int = 0
     """ingest at most this many frames (0 = all)."""
 
@@ -108,6 +113,34 @@ def open_source(raw: Path, cfg: Config) -> FrameSource:
     return RosBag(bag, topics, params_fallback=raw / "params.yaml")
 
 
+def duplicate_frames(stamps: np.ndarray, min_gap_ns: int) -> np.ndarray:
+    """[N] bool: frames less than min_gap_ns after the last kept frame (sorted stamps)."""
+    dup = np.zeros(len(stamps), bool)
+    last = None
+    for i, s in enumerate(stamps):
+        if last is not None and s - last < min_gap_ns:
+            dup[i] = True
+        else:
+            last = s
+    return dup
+
+
+def depth_used_twice(cs: np.ndarray, ds: np.ndarray, di: np.ndarray) -> np.ndarray:
+    """[N] bool: colour frames whose depth image is nearer to another colour frame (each depth image pairs
+    one colour frame; ties go to the earlier frame)."""
+    out = np.zeros(len(cs), bool)
+    best: dict[int, int] = {}
+    for i in np.flatnonzero(di >= 0):
+        d = int(di[i])
+        if d in best and abs(int(cs[best[d]]) - int(ds[d])) <= abs(int(cs[i]) - int(ds[d])):
+            out[i] = True
+            continue
+        if d in best:
+            out[best[d]] = True
+        best[d] = int(i)
+    return out
+
+
 def index_by_stamp(folder: Path) -> tuple[np.ndarray, list[Path]]:
     files = sorted(folder.glob("*.png")) if folder.is_dir() else []
     stamps, paths = [], []
@@ -126,14 +159,30 @@ def match(frame_stamps: np.ndarray, stamps: np.ndarray, tol_ns: int) -> np.ndarr
 
 
 def labelled_stamps(raw: Path, cfg: Config) -> np.ndarray:
+    """Stamps of the labelled frames (annotations.json images, else seg/ PNG names); annotations must use the
+    project's class ids."""
     path = raw / cfg.annotations
     if path.is_file():
         try:
             ann = json.loads(path.read_text())
             names = [Path(img["file_name"]).stem for img in ann["images"]]
-        except (json.JSONDecodeError, KeyError, TypeError) as err:
-            raise IngestError(f"{path}: not COCO annotations with images[].file_name: {err}") from err
-        return np.array(sorted(stamp_from_name(n) for n in names), np.int64)
+            anns = ann.get("annotations", [])
+            used = [(a.get("id"), a.get("image_id"), a["category_id"]) for a in anns]
+        except (json.JSONDecodeError, KeyError, TypeError, AttributeError, UnicodeDecodeError) as err:
+            raise IngestError(f"{path}: not COCO annotations with images[].file_name and annotations[]."
+                              f"category_id: {err}") from err
+        valid = {c.id for c in DEFAULT_CLASSES}
+        bad = [(i, img, c) for i, img, c in used if c not in valid]
+        if bad:
+            i, img, c = bad[0]
+            raise IngestError(f"{path}: annotation id {i} (image_id {img}) has category_id {c!r}, which the class "
+                              f"table lacks ({len(bad)} such annotation(s)); classes: "
+                              f"{', '.join(f'{k.id}={k.name}' for k in DEFAULT_CLASSES)}")
+        try:
+            return np.array(sorted(stamp_from_name(n) for n in names), np.int64)
+        except IngestError as err:
+            raise IngestError(f"{path}: images[].file_name must be named by the frame's stamp "
+                              f"(rgb/<stamp_ns>.png): {err}") from None
     return index_by_stamp(raw / "seg")[0]
 
 
@@ -170,10 +219,20 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
     for k, v in rec.counts.items():
         ctx.count(k, v)
     cs = rec.color_stamps
+    dup = duplicate_frames(cs, int(cfg.min_frame_gap_ms * 1e6))
+    if dup.any():
+        ctx.count("skipped_duplicate_frame", int(dup.sum()))
+        ctx.note(f"{int(dup.sum())} colour frame(s) less than {cfg.min_frame_gap_ms} ms after the previous one "
+                 f"skipped as duplicates (first at {cs[np.flatnonzero(dup)[0]]} ns)")
     di = pair_nearest(cs, rec.depth_stamps, int(cfg.pair_tolerance_ms * 1e6))
+    di[dup] = -2
+    shared = depth_used_twice(cs, rec.depth_stamps, di)
+    if shared.any():
+        ctx.count("skipped_depth_paired_with_another_frame", int(shared.sum()))
+        di[shared] = -2
     poses_base, odom_ok = interpolate_poses(rec.odometry, cs, int(cfg.odom_tolerance_ms * 1e6))
     keep = (di >= 0) & odom_ok
-    ctx.count("skipped_no_depth", int((di < 0).sum()))
+    ctx.count("skipped_no_depth", int((di == -1).sum()))
     ctx.count("skipped_no_odometry", int(((di >= 0) & ~odom_ok).sum()))
     idx = np.flatnonzero(keep)
     if cfg.max_frames:
@@ -197,8 +256,9 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
         h, w = rgb.shape[:2]
         rec.camera.check(w, h, f"colour image at {cs[ci]} ns")
         if depth.shape != (h, w):
-            raise IngestError(f"frame at {cs[ci]} ns: depth is {depth.shape[1]}x{depth.shape[0]} but colour is "
-                              f"{w}x{h}; depth must be aligned to colour")
+            raise IngestError(f"frame at {cs[ci]} ns ({src.where(ci, int(di[ci]))}): depth is {depth.shape[1]}x"
+                              f"{depth.shape[0]} but colour is {w}x{h}; depth must be aligned to colour (RealSense: "
+                              f"the aligned_depth_to_color stream)")
         mm = depth_to_mm(depth)
         valid = float((mm > 0).mean())
         if valid == 0:
@@ -217,6 +277,11 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
     m_gts, m_gti = match(stamps, gts_st, tol), match(stamps, gti_st, tol)
     lab = labelled_stamps(raw, cfg)
     is_lab = match(stamps, lab, tol) >= 0
+    lost = lab[match(lab, stamps, tol) < 0]
+    if len(lost):
+        ctx.count("labelled_frames_not_ingested", len(lost))
+        ctx.note(f"{len(lost)} labelled frame(s) were skipped or do not exist (first at {lost[0]} ns): no window is "
+                 f"centred on them and they are not evaluated")
     h, w = rec.camera.height, rec.camera.width
     det_sem, det_ins, detections = read_detector_output(raw, stamps, (h, w), cfg, ctx)
     txyzq = txyzq_from_pose(cam_poses[order])
@@ -394,13 +459,20 @@ def read_coco(raw: Path, det_dir: Path, fmt: str, json_path: Path, obj, stamps: 
         if j < 0:
             continue
         stamp = det_stamps[j]
-        if fmt == "coco_panoptic":
-            labels = reader.labels(stamp, shape, cmap, count)
-        else:
-            if len(sem_st) and m_sem[n] < 0:
-                note_capped(ctx, "frames_without_semantic_png", f"frame at {stamps[n]} ns: no semantic PNG in "
-                                                                f"{det_dir / 'semantic'}; pixels no mask covers are void")
-            labels = reader.labels(stamp, shape, cmap, count, sem_files[m_sem[n]] if m_sem[n] >= 0 else None)
+        try:
+            if fmt == "coco_panoptic":
+                labels = reader.labels(stamp, shape, cmap, count)
+            else:
+                if len(sem_st) and m_sem[n] < 0:
+                    note_capped(ctx, "frames_without_semantic_png", f"frame at {stamps[n]} ns: no semantic PNG in "
+                                f"{det_dir / 'semantic'}; pixels no mask covers are void")
+                labels = reader.labels(stamp, shape, cmap, count, sem_files[m_sem[n]] if m_sem[n] >= 0 else None)
+        except UnreadableLabels as err:
+            if cfg.on_bad_image == "error":
+                raise
+            note_capped(ctx, "frames_with_unreadable_detector_png", f"frame at {stamps[n]} ns: {err}; the frame "
+                                                                    f"gets no detections")
+            continue
         name = f"{stamps[n]}.png"
         write_png(out_dir / "det" / "semantic" / name, labels.semantic)
         write_png(out_dir / "det" / "instance" / name, labels.instance)
