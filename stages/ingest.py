@@ -22,7 +22,7 @@ from sources.png_folder import PngFolder
 from sources.rosbag import RosBag, Topics, is_ros2_dir
 
 INPUTS = ("raw",)
-OUTPUTS = ("frames", "detections", "images")
+OUTPUTS = ("frames", "detections", "input_checks", "images")
 
 
 @dataclass(frozen=True)
@@ -309,7 +309,20 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
     if len(detections) == 0:
         ctx.note(f"no detector segments in the whole row (detections format: {ctx.summary['detections_format']}); "
                  f"the panoptic outputs will hold no fruit")
-    return {"frames": frames, "detections": detections}
+    return {"frames": frames, "detections": detections, "input_checks": input_checks(ctx.summary)}
+
+
+def input_checks(summary: dict) -> pd.DataFrame:
+    """The stage summary as a table (counts, named values, notes), for the report."""
+    rows = []
+    for key, value in summary.items():
+        if key == "notes":
+            rows += [("note", None, str(n)) for n in value]
+        elif isinstance(value, (int, np.integer)) and not isinstance(value, bool):
+            rows.append((key, int(value), ""))
+        else:
+            rows.append((key, None, str(value)))
+    return pd.DataFrame(rows, columns=["check", "count", "note"]).astype({"count": "Int64"})
 
 
 def read_detector_output(raw: Path, stamps: np.ndarray, shape: tuple[int, int], cfg: Config,
@@ -366,7 +379,7 @@ def read_png_pair(det_dir: Path, stamps: np.ndarray, shape: tuple[int, int], cfg
             ctx.count("scores_rows_without_frame", int((frame_row < 0).sum()))
         scores = scores.assign(frame_row=frame_row)
         by_frame = {k: g for k, g in scores[scores.frame_row >= 0].groupby("frame_row")}
-    elif len(ins_st):
+    elif len(ins_st) and not (det_dir / "scores.csv").is_file():
         ctx.note(f"{det_dir / 'scores.csv'} missing: segments taken from the instance PNGs with score 1.0")
     valid = set(c.id for c in DEFAULT_CLASSES) | {VOID}
     rows = []
