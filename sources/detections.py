@@ -404,11 +404,10 @@ class CocoInstances:
                                   f"frame is {w}x{h}")
             sem = cmap.lut(raw_sem)
             things = np.isin(sem, THING_IDS)
-            if things.any():  # a thing class where no instance mask will be: unlabelled
-                sem[things] = VOID
-                count("semantic_thing_pixels_without_mask_set_to_void", int(things.sum()))
+            sem[things] = VOID  # thing pixels come from the masks; one that no mask covers stays unlabelled
         else:
             sem = np.full(shape, VOID, np.uint8)
+            things = np.zeros(shape, bool)
         inst = np.zeros(shape, np.uint16)
         results = self.by_stamp.get(stamp, [])
         masks = []
@@ -426,6 +425,9 @@ class CocoInstances:
         for k, klass, score, m in sorted(masks, key=lambda t: t[2]):
             sem[m] = klass
             inst[m] = k if klass in THING_IDS else 0
+            things &= ~m
+        if things.any():
+            count("semantic_thing_pixels_without_mask_set_to_void", int(things.sum()))
         segments = []
         for k, klass, score, _ in masks:
             if klass not in THING_IDS:

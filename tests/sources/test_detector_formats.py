@@ -229,3 +229,9 @@ def test_panoptic_with_detector_ids_large_segment_ids_and_missing_scores(rows, t
     sem, inst = label_images(out, raw, staging)[0]
     assert inst[15, 15] == 1 and inst[5, 5] == 2 and sem[25, 30] == 1 and inst[25, 30] == 0 and sem[31, 0] == 255
     assert out["frames"]["det_instance_path"].notna().sum() == 1 and ctx.summary["frames_without_detections"] == 5
+
+
+def test_instances_semantic_png_with_fruit_under_the_masks_voids_nothing(rows, tmp_path):
+    # the synthetic semantic PNGs paint every detected fruit; the masks cover all of it, so nothing is voided
+    _, ctx, _ = run_ingest(rows["coco_instances"], tmp_path)
+    assert "semantic_thing_pixels_without_mask_set_to_void" not in ctx.summary
