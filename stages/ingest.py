@@ -158,9 +158,10 @@ def match(frame_stamps: np.ndarray, stamps: np.ndarray, tol_ns: int) -> np.ndarr
     return pair_nearest(frame_stamps, stamps, tol_ns) if len(stamps) else np.full(len(frame_stamps), -1)
 
 
-def labelled_stamps(raw: Path, cfg: Config) -> np.ndarray:
-    """Stamps of the labelled frames (annotations.json images, else seg/ PNG names); annotations must use the
-    project's class ids."""
+def labelled_stamps(raw: Path, cfg: Config, ctx: StageContext) -> np.ndarray:
+    """Stamps of the labelled frames (annotations.json images, else seg/ PNG names). An annotation's
+    category must be a project class or one of the file's own categories; a file with categories of its
+    own (a dataset's labels) is counted and only tells which frames are labelled."""
     path = raw / cfg.annotations
     if path.is_file():
         try:
@@ -168,16 +169,22 @@ def labelled_stamps(raw: Path, cfg: Config) -> np.ndarray:
             names = [Path(img["file_name"]).stem for img in ann["images"]]
             anns = ann.get("annotations", [])
             used = [(a.get("id"), a.get("image_id"), a["category_id"]) for a in anns]
+            own = {c["id"] for c in ann.get("categories", [])}
         except (json.JSONDecodeError, KeyError, TypeError, AttributeError, UnicodeDecodeError) as err:
             raise IngestError(f"{path}: not COCO annotations with images[].file_name and annotations[]."
                               f"category_id: {err}") from err
-        valid = {c.id for c in DEFAULT_CLASSES}
-        bad = [(i, img, c) for i, img, c in used if c not in valid]
+        classes = {c.id for c in DEFAULT_CLASSES}
+        bad = [(i, img, c) for i, img, c in used if c not in classes and c not in own]
         if bad:
             i, img, c = bad[0]
-            raise IngestError(f"{path}: annotation id {i} (image_id {img}) has category_id {c!r}, which the class "
-                              f"table lacks ({len(bad)} such annotation(s)); classes: "
-                              f"{', '.join(f'{k.id}={k.name}' for k in DEFAULT_CLASSES)}")
+            raise IngestError(f"{path}: annotation id {i} (image_id {img}) has category_id {c!r}, which neither the "
+                              f"class table nor the file's categories {sorted(own)} have ({len(bad)} such "
+                              f"annotation(s)); classes: {', '.join(f'{k.id}={k.name}' for k in DEFAULT_CLASSES)}")
+        foreign = sorted({c for _, _, c in used if c not in classes})
+        if foreign:
+            ctx.count("annotation_categories_not_in_class_table", len(foreign))
+            ctx.note(f"{path} uses categories {foreign} that the class table lacks; it is read only for which "
+                     f"frames are labelled (ground truth comes from gt/ or seg/)")
         try:
             return np.array(sorted(stamp_from_name(n) for n in names), np.int64)
         except IngestError as err:
@@ -275,7 +282,7 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
     gts_st, gts_files = index_by_stamp(raw / "gt" / "semantic")
     gti_st, gti_files = index_by_stamp(raw / "gt" / "instance")
     m_gts, m_gti = match(stamps, gts_st, tol), match(stamps, gti_st, tol)
-    lab = labelled_stamps(raw, cfg)
+    lab = labelled_stamps(raw, cfg, ctx)
     is_lab = match(stamps, lab, tol) >= 0
     lost = lab[match(lab, stamps, tol) < 0]
     if len(lost):

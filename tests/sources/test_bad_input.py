@@ -324,8 +324,14 @@ def test_bad_input_annotation_with_a_class_id_the_table_lacks_is_an_error(raw, t
     ann["annotations"][1]["category_id"] = 9
     (raw / "annotations.json").write_text(json.dumps(ann))
     with pytest.raises(IngestError, match=rf"annotations.json: annotation id {ann['annotations'][1]['id']} "
-                                          rf"\(image_id \d+\) has category_id 9, which the class table lacks"):
+                                          rf"\(image_id \d+\) has category_id 9, which neither the class table "
+                                          rf"nor the file's categories \[0, 1, 2, 3, 4\] have"):
         run_ingest(raw, tmp_path)
+    # a dataset's own categories (listed in the file) are counted: the file then only says which frames are labelled
+    ann["categories"].append({"id": 9, "name": "pepper_yellow"})
+    (raw / "annotations.json").write_text(json.dumps(ann))
+    out, ctx = run_ingest(raw, tmp_path)
+    assert ctx.summary["annotation_categories_not_in_class_table"] == 1 and out["frames"]["labelled"].sum() == 2
 
 
 def test_bad_input_annotations_for_a_frame_that_does_not_exist_are_counted(raw, tmp_path):
