@@ -343,10 +343,10 @@ def read_detector_output(raw: Path, stamps: np.ndarray, shape: tuple[int, int], 
         ctx.note(f"no detector output in {det_dir} (looked for semantic/ + instance/ PNGs or a COCO JSON)")
         return [None] * len(stamps), [None] * len(stamps), schemas.empty("detections")
     if fmt == "png_pair":
-        if cfg.class_map not in ("", None, {}):
-            raise IngestError(f"ingest.class_map is set but {det_dir} holds the png_pair format, whose semantic PNGs "
-                              f"and scores.csv already use the project's class ids; remove ingest.class_map")
-        return read_png_pair(det_dir, stamps, shape, cfg, ctx)
+        mapping, origin = load_class_map(cfg.class_map, raw)
+        cmap = ClassMapper(mapping, origin, {}, cfg.unmapped, f"{det_dir} (semantic/ and scores.csv)") \
+            if mapping is not None else None
+        return read_png_pair(det_dir, stamps, shape, cfg, ctx, cmap)
     return read_coco(raw, det_dir, fmt, json_path, obj, stamps, shape, cfg, ctx)
 
 
@@ -357,8 +357,10 @@ def note_capped(ctx: StageContext, key: str, msg: str, cap: int = 5) -> None:
         ctx.note(msg)
 
 
-def read_png_pair(det_dir: Path, stamps: np.ndarray, shape: tuple[int, int], cfg: Config,
-                  ctx: StageContext) -> tuple[list[str | None], list[str | None], pd.DataFrame]:
+def read_png_pair(det_dir: Path, stamps: np.ndarray, shape: tuple[int, int], cfg: Config, ctx: StageContext,
+                  cmap: ClassMapper | None = None) -> tuple[list[str | None], list[str | None], pd.DataFrame]:
+    """The project's PNG pair. Without a class map the frames table points at the PNGs in the raw folder;
+    with one, the mapped label images are written under images/det/ (segments mapped to stuff removed)."""
     tol = int(cfg.match_tolerance_ms * 1e6)
     root = ctx.data_root
     sem_st, sem_files = index_by_stamp(det_dir / "semantic")
@@ -406,14 +408,34 @@ def read_png_pair(det_dir: Path, stamps: np.ndarray, shape: tuple[int, int], cfg
         if inst.shape != shape or sem.shape != shape:
             raise IngestError(f"detector PNGs {ins_paths[n]} / {sem_paths[n]} are {inst.shape[1]}x{inst.shape[0]} / "
                               f"{sem.shape[1]}x{sem.shape[0]}; the frame is {shape[1]}x{shape[0]}")
-        bad = sorted(set(np.unique(sem).tolist()) - valid)
-        if bad:
-            raise IngestError(f"detector semantic PNG {sem_paths[n]} holds class ids {bad} that the class table "
-                              f"lacks; classes: {', '.join(f'{c.id}={c.name}' for c in DEFAULT_CLASSES)}, "
-                              f"{VOID} = void (a detector with its own ids: see ingest.class_map and the COCO formats)")
-        rows += png_pair_segments(n, inst, sem, by_frame.get(n), ctx)
-    sem_rel = [rel(p, root) if p is not None else None for p in sem_paths]
-    ins_rel = [rel(p, root) if p is not None else None for p in ins_paths]
+        if cmap is not None:
+            sem = cmap.lut(np.clip(sem, 0, 255))
+        else:
+            bad = sorted(set(np.unique(sem).tolist()) - valid)
+            if bad:
+                raise IngestError(f"detector semantic PNG {sem_paths[n]} holds class ids {bad} that the class table "
+                                  f"lacks; classes: {', '.join(f'{c.id}={c.name}' for c in DEFAULT_CLASSES)}, "
+                                  f"{VOID} = void (a detector with its own ids: set ingest.class_map)")
+        new_rows, stuff = png_pair_segments(n, inst, sem, by_frame.get(n), ctx, cmap)
+        rows += new_rows
+        if cmap is not None:
+            name = f"{stamps[n]}.png"
+            write_png(ctx.output_dir("images") / "det" / "semantic" / name, sem.astype(np.uint8))
+            write_png(ctx.output_dir("images") / "det" / "instance" / name,
+                      np.where(np.isin(inst, sorted(stuff)), 0, inst).astype(np.uint16))
+            sem_paths[n] = ins_paths[n] = name  # type: ignore[assignment]
+    if cmap is not None:
+        voided = cmap.check()
+        if voided:
+            ctx.count("unmapped_categories_set_to_void", voided)
+
+    def relative(p, kind: str) -> str | None:
+        if p is None:
+            return None
+        return ctx.relpath("images", f"det/{kind}/{p}") if isinstance(p, str) else rel(p, root)
+
+    sem_rel = [relative(p, "semantic") for p in sem_paths]
+    ins_rel = [relative(p, "instance") for p in ins_paths]
     if not rows:
         return sem_rel, ins_rel, schemas.empty("detections")
     df = pd.DataFrame(rows, columns=["frame_id", "segment_id", "class_id", "score", "area_px"])
@@ -421,12 +443,14 @@ def read_png_pair(det_dir: Path, stamps: np.ndarray, shape: tuple[int, int], cfg
 
 
 def png_pair_segments(frame_id: int, inst: np.ndarray, sem: np.ndarray, listed: pd.DataFrame | None,
-                      ctx: StageContext) -> list[tuple]:
+                      ctx: StageContext, cmap: ClassMapper | None = None) -> tuple[list[tuple], set[int]]:
     """Segments of one frame: scores.csv rows (those naming a segment the PNG lacks are skipped and counted)
-    and segments of the instance PNG that scores.csv does not list (score 0.5; 1.0 without a scores.csv)."""
+    and segments of the instance PNG that scores.csv does not list (class by majority of the semantic PNG,
+    score 0.5; 1.0 without a scores.csv). Returns the rows and the ids of segments that are not things
+    (with a class map: segments mapped to a stuff class or void, which the caller removes)."""
     area = np.bincount(inst.ravel())
     present = set(np.flatnonzero(area[1:]) + 1)
-    rows, seen = [], set()
+    rows, seen, stuff = [], set(), set()
     if listed is not None:
         for s in listed.itertuples(index=False):
             sid = int(s.segment_id)
@@ -436,20 +460,25 @@ def png_pair_segments(frame_id: int, inst: np.ndarray, sem: np.ndarray, listed: 
             if sid not in present:
                 ctx.count("scores_rows_for_missing_segments")
                 continue
-            if int(s.class_id) not in THING_IDS:
-                raise IngestError(f"scores.csv row for segment {sid} of frame {frame_id}: class_id {s.class_id} is "
-                                  f"not a thing class; thing classes: {list(THING_IDS)}")
-            score = float(s.score) if np.isfinite(s.score) else 0.0
-            rows.append((frame_id, sid, int(s.class_id), min(max(score, 0.0), 1.0), int(area[sid])))
             seen.add(sid)
+            klass = cmap(int(s.class_id)) if cmap is not None else int(s.class_id)
+            if klass not in THING_IDS:
+                if cmap is None:
+                    raise IngestError(f"scores.csv row for segment {sid} of frame {frame_id}: class_id {s.class_id} "
+                                      f"is not a thing class; thing classes: {list(THING_IDS)}")
+                stuff.add(sid)
+                continue
+            score = float(s.score) if np.isfinite(s.score) else 0.0
+            rows.append((frame_id, sid, klass, min(max(score, 0.0), 1.0), int(area[sid])))
     for sid in sorted(present - seen):
         klass = int(np.bincount(sem[inst == sid]).argmax())
         if klass not in THING_IDS:
+            stuff.add(int(sid))
             continue
         if listed is not None:
             ctx.count("segments_without_score")
         rows.append((frame_id, int(sid), klass, 1.0 if listed is None else 0.5, int(area[sid])))
-    return rows
+    return rows, stuff
 
 
 def read_coco(raw: Path, det_dir: Path, fmt: str, json_path: Path, obj, stamps: np.ndarray, shape: tuple[int, int],

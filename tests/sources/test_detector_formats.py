@@ -235,3 +235,27 @@ def test_instances_semantic_png_with_fruit_under_the_masks_voids_nothing(rows, t
     # the synthetic semantic PNGs paint every detected fruit; the masks cover all of it, so nothing is voided
     _, ctx, _ = run_ingest(rows["coco_instances"], tmp_path)
     assert "semantic_thing_pixels_without_mask_set_to_void" not in ctx.summary
+
+
+def test_png_pair_with_the_detector_own_ids_and_a_class_map(rows, tmp_path):
+    import shutil
+    ref, _, ref_dir = run_ingest(rows["png_pair"], tmp_path)
+    raw = tmp_path / "data" / "raw" / "t"
+    shutil.copytree(rows["png_pair"], raw)
+    for p in (raw / "pred_seg" / "semantic").iterdir():     # detector ids = project id + 10
+        sem = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
+        cv2.imwrite(str(p), np.where(sem == 255, 255, sem + 10).astype(np.uint8))
+    scores = pd.read_csv(raw / "pred_seg" / "scores.csv")
+    scores.assign(class_id=scores.class_id + 10).to_csv(raw / "pred_seg" / "scores.csv", index=False)
+    with pytest.raises(IngestError, match=r"semantic PNG .* holds class ids \[10, 11"):
+        run_ingest(raw, tmp_path)
+    out, ctx, staging = run_ingest(raw, tmp_path, class_map={10: 0, 11: 1, 12: 2, 13: 3, 14: 4})
+    pd.testing.assert_frame_equal(out["detections"], ref["detections"])
+    for (s, i), (rs, ri) in zip(label_images(out, raw, staging), label_images(ref, rows["png_pair"], ref_dir)):
+        assert np.array_equal(s, rs) and np.array_equal(i, ri)
+    # green fruit mapped to plant: its segments leave the table and the instance PNGs
+    out, ctx, staging = run_ingest(raw, tmp_path, class_map={10: 0, 11: 1, 12: "plant", 13: 3, 14: 4})
+    assert 2 not in set(out["detections"].class_id) and len(out["detections"]) == (ref["detections"].class_id != 2).sum()
+    for (s, i), (rs, ri) in zip(label_images(out, raw, staging), label_images(ref, rows["png_pair"], ref_dir)):
+        green = np.isin(ri, ref["detections"].query("class_id == 2").segment_id) & (rs == 2)
+        assert (s[green] == 1).all() and (i[green] == 0).all()
