@@ -180,6 +180,11 @@ def json_kind(obj: Any, path: Path) -> str:
     return ""
 
 
+EXPECTED = {"coco_panoptic": "a dict whose annotations carry segments_info",
+            "coco_instances": "a list of results with segmentation (or a dict whose annotations carry them)",
+            "auto": "COCO panoptic (annotations with segments_info) or instance results (with segmentation)"}
+
+
 def detect_format(det_dir: Path, wanted: str, json_name: str) -> tuple[str, Path | None, Any]:
     """Which format the detector folder holds -> (format, JSON path or None, parsed JSON or None).
     format is '' when the folder holds no detector output at all."""
@@ -207,15 +212,16 @@ def detect_format(det_dir: Path, wanted: str, json_name: str) -> tuple[str, Path
         if kind and wanted in ("auto", kind):
             found.append((kind, p, obj))
         elif json_name:
-            raise IngestError(f"{p} is not a {wanted if wanted != 'auto' else 'COCO panoptic or instances'} "
-                              f"detections file (expected {'a list of results' if wanted == 'coco_instances' else ''}"
-                              f"{' or ' if wanted == 'auto' else ''}"
-                              f"{'annotations with segments_info' if wanted != 'coco_instances' else ''})")
+            raise IngestError(f"{p} is not a {'COCO detections' if wanted == 'auto' else wanted} file: expected "
+                              f"{EXPECTED[wanted]}; it is {'a ' + type(obj).__name__ if not kind else kind}")
     if len(found) > 1:
         raise IngestError(f"{det_dir} holds several detections JSON files {[p.name for _, p, _ in found]}; choose one "
                           f"with --set ingest.detections_json=NAME")
     if found:
         return found[0]
+    if wanted == "auto" and (det_dir / "semantic").is_dir() and not cands:
+        raise IngestError(f"{det_dir} has semantic/ but neither instance/ (the png_pair format) nor a COCO detections "
+                          f"JSON; the folder has: {present} (docs/detector_formats.md)")
     if wanted == "auto":
         return "", None, None
     raise IngestError(f"ingest.detections_format={wanted}: no {wanted} JSON in {det_dir}; the folder has: {present}")

@@ -340,3 +340,19 @@ def test_bad_input_annotations_for_a_frame_that_does_not_exist_are_counted(raw, 
     (raw / "annotations.json").write_text(json.dumps(ann))
     out, ctx = run_ingest(raw, tmp_path)
     assert ctx.summary["labelled_frames_not_ingested"] == 1 and out["frames"]["labelled"].sum() == 2
+
+
+def test_bad_input_detector_folder_with_semantic_pngs_only_is_an_error(raw, tmp_path):
+    shutil.rmtree(raw / "pred_seg" / "instance")
+    (raw / "pred_seg" / "scores.csv").unlink()
+    with pytest.raises(IngestError, match=r"pred_seg has semantic/ but neither instance/ \(the png_pair format\) nor "
+                                          r"a COCO detections JSON; the folder has: \['semantic/'\]"):
+        run_ingest(raw, tmp_path)
+
+
+def test_bad_input_detections_json_named_that_is_not_detections_is_an_error(raw, tmp_path):
+    coco_row(raw)
+    (raw / "pred_seg" / "other.json").write_text(json.dumps({"info": "not detections"}))
+    with pytest.raises(IngestError, match=r"other.json is not a coco_panoptic file: expected a dict whose annotations "
+                                          r"carry segments_info; it is a dict"):
+        run_ingest(raw, tmp_path, detections_json="other.json", detections_format="coco_panoptic")
