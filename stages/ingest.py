@@ -253,12 +253,13 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
     out_dir = ctx.output_dir("images")
     decoded: dict[int, tuple[str, str, float]] = {}
     pairs = [(int(i), int(di[i])) for i in idx]
+    first_error = ""
     for ci, rgb, depth, err in ctx.progress(src.frames(pairs), "frames", len(pairs)):
         if err:
             if cfg.on_bad_image == "error":
                 raise IngestError(err)
-            ctx.count("skipped_bad_image")
-            ctx.note(f"skipped frame at {cs[ci]} ns: {err}")
+            first_error = first_error or err
+            note_capped(ctx, "skipped_bad_image", f"skipped frame at {cs[ci]} ns: {err}")
             continue
         h, w = rgb.shape[:2]
         rec.camera.check(w, h, f"colour image at {cs[ci]} ns")
@@ -276,7 +277,8 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
         decoded[ci] = (ctx.relpath("images", f"rgb/{name}"), ctx.relpath("images", f"depth/{name}"), valid)
     order = [i for i in idx if i in decoded]
     if not order:
-        raise IngestError(f"{src.describe()}: no frame could be decoded")
+        raise IngestError(f"{src.describe()}: none of the {len(pairs)} paired frames could be decoded; the first "
+                          f"error: {first_error}")
     stamps = cs[order]
     tol = int(cfg.match_tolerance_ms * 1e6)
     gts_st, gts_files = index_by_stamp(raw / "gt" / "semantic")

@@ -356,3 +356,11 @@ def test_bad_input_detections_json_named_that_is_not_detections_is_an_error(raw,
     with pytest.raises(IngestError, match=r"other.json is not a coco_panoptic file: expected a dict whose annotations "
                                           r"carry segments_info; it is a dict"):
         run_ingest(raw, tmp_path, detections_json="other.json", detections_format="coco_panoptic")
+
+
+def test_bad_input_every_colour_image_corrupt_is_an_error_with_the_first_cause(raw, tmp_path):
+    for p in (raw / "rgb").iterdir():
+        p.write_bytes(p.read_bytes()[:50])
+    with pytest.raises(IngestError, match=r"none of the 8 paired frames could be decoded; the first error: colour "
+                                          r"image .*rgb/\d+.png is not a readable PNG"):
+        run_ingest(raw, tmp_path)
