@@ -105,8 +105,13 @@ class ClassMapper:
 
     def __init__(self, mapping: dict[Any, int] | None, origin: str, categories: dict[int, str], unmapped: str,
                  source: str):
-        self.mapping, self.origin, self.categories, self.unmapped, self.source = mapping, origin, categories, \
-            unmapped, source
+        self.mapping = mapping
+        self.origin = origin
+        self.categories = categories
+        """the detector's categories {id: name}, for names in the map and in errors."""
+        self.unmapped = unmapped
+        self.source = source
+        """the detector file(s), for errors."""
         self.by_id: dict[int, int] = {}
         if mapping is not None:
             names = [k for k in mapping if isinstance(k, str)]
