@@ -15,6 +15,7 @@ import pyarrow as pa
 TABLES: tuple[str, ...] = (
     "frames",
     "detections",
+    "input_checks",
     "windows",
     "gt_segments",
     "colmap_poses",

@@ -17,10 +17,10 @@ from rowmap.colours import id_colours
 from rowmap.renders import Renders
 
 INPUTS = ("frames", "windows", "window_metrics", "nerf", "renders", "panoptic_frames", "panoptic", "fruits", "counts")
-OPTIONAL_INPUTS = ("evaluation",)
+OPTIONAL_INPUTS = ("evaluation", "input_checks")
 OUTPUTS = ("report",)
 
-SECTIONS = ("Run configuration", "Windows", "Centre frames", "Fruit map", "Counts", "Evaluation")
+SECTIONS = ("Run configuration", "Windows", "Centre frames", "Fruit map", "Counts", "Evaluation", "Input checks")
 
 
 @dataclass(frozen=True)
@@ -170,6 +170,20 @@ text-align:right}table.img td{padding:2px}table.img img{display:block}pre{backgr
 max-height:24em;overflow:auto;font-size:0.8em}.note{color:#a40}"""
 
 
+def input_checks_html(checks: pd.DataFrame | None) -> str:
+    """What ingest counted (skips, repairs, totals) and its notes (docs/bad_input.md)."""
+    if checks is None or checks.empty:
+        return "<p>No input checks recorded (run `pag ingest`).</p>"
+    counts = checks[checks.check != "note"].copy()
+    counts["value"] = [str(c) if pd.notna(c) else n for c, n in zip(counts["count"], counts["note"])]
+    notes = checks[checks.check == "note"].note
+    out = "<p>What ingest read, skipped and repaired (a skipped frame or segment is counted here, never " \
+          "dropped silently).</p>" + table_html(counts[["check", "value"]])
+    if len(notes):
+        out += "<ul>" + "".join(f"<li>{html.escape(n)}</li>" for n in notes) + "</ul>"
+    return out
+
+
 def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]:
     metrics: pd.DataFrame = inputs["window_metrics"]
     fruits: pd.DataFrame = inputs["fruits"]
@@ -216,6 +230,7 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
         parts.append(table_html(piv))
     else:
         parts.append("<p>No evaluation (the sequence has no ground truth, or `pag evaluate` has not run).</p>")
+    parts.append(f"<h2>{SECTIONS[6]}</h2>" + input_checks_html(inputs.get("input_checks")))
     page = (f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>PAg-NeRF report {html.escape(ctx.seq)}"
             f"</title><style>{CSS}</style></head><body>{''.join(parts)}</body></html>")
     out = ctx.output_dir("report") / "report.html"

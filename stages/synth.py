@@ -6,7 +6,7 @@ from collections import deque
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass
-from typing import TypeVar
+from typing import Literal, TypeVar
 
 import numpy as np
 import pandas as pd
@@ -95,6 +95,10 @@ class Config:
     """colour anti-aliasing: 1 = the pixel-centre ray only; 2 = centre plus the 4 pixel corners shared with the
     neighbours (quincunx, about 2 rays per pixel); s >= 3 = an s x s grid per pixel. Depth and labels always
     come from the pixel-centre ray."""
+    detections_format: Literal["png_pair", "coco_panoptic", "coco_instances"] = "png_pair"
+    """format of the detector output in pred_seg/: the project's PNG pair + scores.csv, COCO panoptic (JSON + PNG
+    folder, as Detectron2 / Mask2Former write it) or COCO instance results (RLE masks + semantic PNGs for the
+    stuff); all three hold the same segments (docs/detector_formats.md)."""
     write_bag: bool = True
     """also write the recording as a ROS 1 bag <SEQ>.bag (pixel-identical to the PNGs)."""
     workers: int = 0
@@ -277,7 +281,7 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
             bag.odom(int(odom_stamps[j]), odom_txyzq[j], lin[j], ang[j], ODOM_FRAME, BASE_FRAME)
             next_odom += 1
 
-    score_rows: list[tuple[int, int, int, float]] = []
+    det_writer = writers.DetectorWriter(out, cfg.detections_format, cfg.width, cfg.height)
     annotated: list[tuple[int, np.ndarray, np.ndarray]] = []
     views = np.zeros(n_ids, np.int32)
     try:
@@ -287,9 +291,8 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
             depth_mm = depth_to_mm(fr["depth"])
             det = detector.detect(fr["semantic"], fr["instance"], fr["depth"], sizes, noise,
                                   np.random.default_rng([cfg.seed, 3, i]))
-            writers.write_frame_pngs(out, stamp, fr["rgb"], depth_mm, fr["semantic"], fr["instance"], det.semantic,
-                                     det.instance)
-            score_rows += [(stamp, sid, klass, score) for sid, klass, score in det.segments]
+            writers.write_frame_pngs(out, stamp, fr["rgb"], depth_mm, fr["semantic"], fr["instance"])
+            det_writer.frame(stamp, det.semantic, det.instance, det.segments)
             for key, n in det.stats.items():
                 ctx.count(f"detector_{key}", n)
             views[np.unique(fr["instance"])] += 1
@@ -308,9 +311,7 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
 
     writers.write_params(out / "params.yaml", k, t_robot_camera, cfg.width, cfg.height)
     writers.write_odometry_csv(out / "odometry.csv", odom_stamps, odom_txyzq)
-    (out / "pred_seg").mkdir(exist_ok=True)
-    pd.DataFrame(score_rows, columns=["stamp_ns", "segment_id", "class_id", "score"]).to_csv(
-        out / "pred_seg" / "scores.csv", index=False)
+    det_writer.close()
     writers.write_json(out / "annotations.json", writers.coco_annotations(annotated, cfg.width, cfg.height))
 
     gt = out / "gt"
