@@ -7,6 +7,7 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
+import re
 import shutil
 import sys
 import time
@@ -71,12 +72,22 @@ def code_hash(stage: dag.Stage) -> str:
     return h.hexdigest()
 
 
+SEQ_PART = re.compile(r"[A-Za-z0-9_\-][A-Za-z0-9_.\-]*")
+
+
+def valid_seq(seq: str) -> bool:
+    """A sequence is a folder under data/raw/: one name, or names joined by '/' (a BUP20 release placed under
+    data/raw/ gives `20200924/row3`); never absolute, never '..', no part starting with '.'."""
+    return bool(seq) and all(SEQ_PART.fullmatch(part) for part in seq.split("/"))
+
+
 class Runner:
     def __init__(self, seq: str, data_root: Path = Path("data"), config_file: Path | None = None,
                  overrides: list[str] | tuple[str, ...] = (), show_progress: bool | None = None,
                  stages: list[dag.Stage] | None = None):
-        if not seq or "/" in seq or seq.startswith("."):
-            raise PipelineError(f"--seq must be a folder name under data/raw/, got {seq!r}")
+        if not valid_seq(seq):
+            raise PipelineError(f"--seq must be a folder name under data/raw/ (letters, digits, '_', '-', '.'), or "
+                                f"such names joined by '/' for a nested folder such as 20200924/row3; got {seq!r}")
         self.seq = seq
         self.data_root = Path(data_root)
         self.stages = dag.check(stages) if stages is not None else dag.build()

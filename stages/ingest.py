@@ -54,7 +54,9 @@ class Config:
     detections_dir: str = "pred_seg"
     """detector output folder in the raw folder: semantic/, instance/, scores.csv."""
     annotations: str = "annotations.json"
-    """COCO annotations of the labelled frames, in the raw folder."""
+    """COCO annotations of the labelled frames: looked for in the raw folder, then in the two folders above it
+    (a BUP20 release keeps one annotation file at its root, above <date>/row<N>); images of other rows in
+    a shared file simply match no frame. Without it, the stamps of seg/<stamp>.png mark the labelled frames."""
     match_tolerance_ms: float = 1.0
     """detector / annotation files match a frame when their name's stamp is this close."""
     on_bad_image: Literal["skip", "error"] = "skip"
@@ -109,9 +111,19 @@ def match(frame_stamps: np.ndarray, stamps: np.ndarray, tol_ns: int) -> np.ndarr
     return pair_nearest(frame_stamps, stamps, tol_ns) if len(stamps) else np.full(len(frame_stamps), -1)
 
 
+def find_annotations(raw: Path, name: str) -> Path | None:
+    """`name` in the row folder, else in its parent, else in the folder above that (the BUP20 release root of
+    <root>/<date>/row<N>); the row folder may be a symbolic link into the release."""
+    real = raw.resolve()
+    for folder in (raw, real.parent, real.parent.parent):
+        if (folder / name).is_file():
+            return folder / name
+    return None
+
+
 def labelled_stamps(raw: Path, cfg: Config) -> np.ndarray:
-    path = raw / cfg.annotations
-    if path.is_file():
+    path = find_annotations(raw, cfg.annotations)
+    if path is not None:
         try:
             ann = json.loads(path.read_text())
             names = [Path(img["file_name"]).stem for img in ann["images"]]
@@ -238,7 +250,7 @@ def read_detections(frames: pd.DataFrame, scores_path: Path, ins_stamps: np.ndar
             ctx.note(f"{scores_path} missing: segments taken from the instance PNGs with score 1.0")
     rows = []
     for n, fr in enumerate(frames.itertuples(index=False)):
-        if fr.det_instance_path is None:
+        if not isinstance(fr.det_instance_path, str):  # None, or NaN in a string column
             continue
         inst = read_label(ctx.abspath(fr.det_instance_path), "detector instance")
         sem = read_label(ctx.abspath(fr.det_semantic_path), "detector semantic")

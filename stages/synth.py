@@ -6,6 +6,7 @@ from collections import deque
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass
+from pathlib import Path
 from typing import Literal, TypeVar
 
 import numpy as np
@@ -287,7 +288,7 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
 
     bag = None
     if cfg.write_bag:
-        bag = writers.Ros1BagWriter(out / f"{ctx.seq}.bag", TOPICS)
+        bag = writers.Ros1BagWriter(out / f"{Path(ctx.seq).name}.bag", TOPICS)  # (nested SEQ: its last part)
         bag.static_tf(int(odom_stamps[0]), BASE_FRAME, CAMERA_FRAME, trajectory.to_txyzq(t_robot_camera[None])[0])
     odom_txyzq = trajectory.to_txyzq(odom)
     lin, ang = odometry_twist(odom_stamps, odom)
