@@ -21,6 +21,7 @@ import yaml
 from pipeline import config as cfgmod
 from pipeline import dag, io
 from pipeline.catalog import DATASETS, dataset
+from pipeline.resources import PeakMemory
 from pipeline.stage import StageContext
 
 log = logging.getLogger("pag")
@@ -37,6 +38,8 @@ class StageResult:
     status: str  # "ran" | "skipped"
     seconds: float = 0.0
     summary: dict[str, Any] = field(default_factory=dict)
+    peak_rss_mb: float = 0.0
+    """largest resident memory of the pipeline process and its workers while the stage ran (MiB, sampled)."""
 
 
 def code_hash(stage: dag.Stage) -> str:
@@ -209,6 +212,7 @@ class Runner:
                            scheduler=run_cfg.scheduler or None)
         print(f"[pag] {s.name}: running", file=sys.stderr)
         t0 = time.perf_counter()
+        memory = PeakMemory().start()  # this process and its workers
         try:
             outputs = s.module.run(inputs, self.config[s.name], ctx)
             tables = [o for o in s.outputs if dataset(o).kind == "table"]
@@ -226,8 +230,11 @@ class Runner:
             for path in staging.values():
                 shutil.rmtree(path, ignore_errors=True)
             raise
+        finally:
+            memory.stop()
         seconds = time.perf_counter() - t0
-        record = {"stage": s.name, "key": key, "seconds": round(seconds, 3), "inputs": input_hashes,
+        record = {"stage": s.name, "key": key, "seconds": round(seconds, 3),
+                  "peak_rss_mb": round(memory.peak_mb, 1), "inputs": input_hashes,
                   "outputs": {o: self.hashes.tree_hash(self._input_path(o)) for o in s.outputs},
                   "config": cfgmod.to_dict(self.config[s.name]), "summary": ctx.summary,
                   "finished_unix": time.time()}
@@ -237,4 +244,4 @@ class Runner:
         print(f"[pag] {s.name}: done in {seconds:.1f} s" + (f" ({brief})" if brief else ""), file=sys.stderr)
         for note in ctx.summary.get("notes", []):
             print(f"[pag] {s.name}: {note}", file=sys.stderr)
-        return StageResult(s.name, "ran", seconds, ctx.summary)
+        return StageResult(s.name, "ran", seconds, ctx.summary, memory.peak_mb)
