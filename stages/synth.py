@@ -28,13 +28,16 @@ TOPICS = {"color": "/camera/color/image_raw", "depth": "/camera/aligned_depth_to
           "info": "/camera/color/camera_info", "odom": "/odom", "tf_static": "/tf_static"}
 
 
-PRESETS: dict[str, dict[str, int | float]] = {
-    "small": {"n_frames": 120, "width": 320, "height": 180, "fps": 15.0, "speed_m_per_s": 0.2, "n_labelled": 3},
-    "bup20": {"n_frames": 450, "width": 1280, "height": 720, "fps": 15.0, "speed_m_per_s": 0.2, "n_labelled": 5},
+PRESETS: dict[str, dict[str, int | float | bool]] = {
+    "small": {"n_frames": 120, "width": 320, "height": 180, "fps": 15.0, "speed_m_per_s": 0.2, "n_labelled": 3,
+              "write_bag": True},
+    "bup20": {"n_frames": 450, "width": 1280, "height": 720, "fps": 15.0, "speed_m_per_s": 0.2, "n_labelled": 5,
+              "write_bag": False},
 }
 """Row sizes: `small` is the default row (1.6 m, 3 labelled frames); `bup20` has the size of a BUP20 /
 RealSense recording: 1280x720 at 15 fps and 0.2 m/s, 450 frames = 6 m of row, a labelled frame every
-metre (frames 75, 150, ..., 374: one metre from either end, so a window of +-40 frames fits around each)."""
+metre (frames 75, 150, ..., 374: one metre from either end, so a window of +-40 frames fits around each).
+The bup20 row writes no bag by default: its uncompressed images would be about 4.6 MB a frame (2 GB)."""
 
 
 @dataclass(frozen=True)
@@ -42,8 +45,8 @@ class Config:
     seed: int = 0
     """random seed: the same settings and seed give byte-identical files; every knob below is deterministic."""
     preset: Literal["small", "bup20"] = "small"
-    """row size preset (PRESETS): fills n_frames, width, height, fps, speed_m_per_s and n_labelled where they are not
-    set; `bup20` is a real-size row (1280x720, 450 frames, 6 m)."""
+    """row size preset (PRESETS): fills n_frames, width, height, fps, speed_m_per_s, n_labelled and write_bag where
+    they are not set; `bup20` is a real-size row (1280x720, 450 frames, 6 m)."""
     n_frames: int | None = None
     """camera frames in the row (None = the preset's; 120 at 15 fps and 0.2 m/s = 1.6 m of row)."""
     width: int | None = None
@@ -109,8 +112,9 @@ class Config:
     """colour anti-aliasing: 1 = the pixel-centre ray only; 2 = centre plus the 4 pixel corners shared with the
     neighbours (quincunx, about 2 rays per pixel); s >= 3 = an s x s grid per pixel. Depth and labels always
     come from the pixel-centre ray."""
-    write_bag: bool = True
-    """also write the recording as a ROS 1 bag <SEQ>.bag (pixel-identical to the PNGs)."""
+    write_bag: bool | None = None
+    """also write the recording as a ROS 1 bag <SEQ>.bag (pixel-identical to the PNGs; None = the preset's:
+    yes for small, no for bup20)."""
     workers: int = 0
     """render threads (0 = one per CPU core, at most 4); the output does not depend on it."""
 
