@@ -71,7 +71,9 @@ class Config:
     """a detector category the class map does not cover: stop with an error listing them ('error'), or make
     its pixels unlabelled (void, 255) and drop its segments ('void'); how many were voided is counted."""
     annotations: str = "annotations.json"
-    """COCO annotations of the labelled frames, in the raw folder."""
+    """COCO annotations of the labelled frames: looked for in the raw folder, then in the two folders above it
+    (a BUP20 release keeps one annotation file at its root, above <date>/row<N>); images of other rows in
+    a shared file simply match no frame. Without it, the stamps of seg/<stamp>.png mark the labelled frames."""
     min_frame_gap_ms: float = 1.0
     """a colour frame less than this after the previous one is a duplicate (a re-sent or twice-saved image):
     skipped and counted. Keep it well under the frame period (66 ms at 15 fps)."""
@@ -158,12 +160,22 @@ def match(frame_stamps: np.ndarray, stamps: np.ndarray, tol_ns: int) -> np.ndarr
     return pair_nearest(frame_stamps, stamps, tol_ns) if len(stamps) else np.full(len(frame_stamps), -1)
 
 
+def find_annotations(raw: Path, name: str) -> Path | None:
+    """`name` in the row folder, else in its parent, else in the folder above that (the BUP20 release root of
+    <root>/<date>/row<N>); the row folder may be a symbolic link into the release."""
+    real = raw.resolve()
+    for folder in (raw, real.parent, real.parent.parent):
+        if (folder / name).is_file():
+            return folder / name
+    return None
+
+
 def labelled_stamps(raw: Path, cfg: Config, ctx: StageContext) -> np.ndarray:
     """Stamps of the labelled frames (annotations.json images, else seg/ PNG names). An annotation's
     category must be a project class or one of the file's own categories; a file with categories of its
     own (a dataset's labels) is counted and only tells which frames are labelled."""
-    path = raw / cfg.annotations
-    if path.is_file():
+    path = find_annotations(raw, cfg.annotations)
+    if path is not None:
         try:
             ann = json.loads(path.read_text())
             names = [Path(img["file_name"]).stem for img in ann["images"]]
