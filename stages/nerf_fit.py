@@ -64,10 +64,10 @@ class Config:
     depth_poses: DepthPoses = "icp"
     """correct each window's initial poses with its depth frames before the fit (nerf/depth_poses.py): 'icp'
     = the shape of the trajectory from point-to-plane ICP between consecutive frames, placed onto the
-    odometry (about 3 s per window; a link ICP cannot lock keeps the odometry's); 'scale' = only the
-    odometry's scale along the window; 'off' = the odometry (or COLMAP) poses as they are. Pose refinement
-    from colour keeps the scale and drift it starts from. Default row, refined ATE (rigid): off 5.1 mm, scale
-    2.0 mm, against 6.0 mm for the odometry."""
+    odometry (a link ICP cannot lock onto keeps the odometry's); 'scale' = only the odometry's scale along
+    the window; 'off' = the odometry (or COLMAP) poses as they are. Pose refinement from colour keeps the
+    scale and drift it starts from, so keep 'icp' unless the depth is unusable (then 'scale' or 'off');
+    'scale' is bit-for-bit reproducible across processes, ICP only to floating-point noise."""
     workers: int = 0
     """Dask workers for a local cluster (0 = one per core, at most one per window)."""
     threads_per_worker: int = 0
