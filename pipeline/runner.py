@@ -9,7 +9,6 @@ import hashlib
 import importlib
 import json
 import logging
-import re
 import shutil
 import sys
 import time
@@ -59,13 +58,13 @@ def code_hash(stage: dag.Stage) -> str:
     return codehash.code_hash([stage.module.__name__, *schema_modules], REPO_ROOT, files=files)
 
 
-SEQ_PART = re.compile(r"[A-Za-z0-9_\-][A-Za-z0-9_.\-]*")
-
-
 def valid_seq(seq: str) -> bool:
     """A sequence is a folder under data/raw/: one name, or names joined by '/' (a BUP20 release placed under
-    data/raw/ gives `20200924/row3`); never absolute, never '..', no part starting with '.'."""
-    return bool(seq) and all(SEQ_PART.fullmatch(part) for part in seq.split("/"))
+    data/raw/ gives `20200924/row3`). Names may hold spaces and non-ASCII letters; never absolute, no empty
+    part, no part starting with '.' (so never '..'), no backslash or control character."""
+    parts = seq.split("/")
+    return bool(seq) and all(p and not p.startswith(".") and p == p.strip() and "\\" not in p
+                             and all(c.isprintable() for c in p) for p in parts)
 
 
 class Runner:
@@ -73,8 +72,9 @@ class Runner:
                  overrides: list[str] | tuple[str, ...] = (), show_progress: bool | None = None,
                  stages: list[dag.Stage] | None = None):
         if not valid_seq(seq):
-            raise PipelineError(f"--seq must be a folder name under data/raw/ (letters, digits, '_', '-', '.'), or "
-                                f"such names joined by '/' for a nested folder such as 20200924/row3; got {seq!r}")
+            raise PipelineError(f"--seq must be a folder name under data/raw/, or such names joined by '/' for a nested "
+                                f"folder such as 20200924/row3 (no empty part, no part starting with '.', no leading "
+                                f"or trailing space); got {seq!r}")
         self.seq = seq
         self.data_root = Path(data_root)
         self.stages = dag.check(stages) if stages is not None else dag.build()
