@@ -5,7 +5,7 @@ from schemas import col, table_schema
 
 SCHEMA = table_schema(
     "input_checks",
-    "One row per count or note of the ingest stage summary (docs/bad_input.md lists the checks): totals "
+    "One row per count or note of the ingest stage summary (README.md, section Bad input, lists the checks): totals "
     "(frames, labelled, segments), skips (e.g. skipped_no_odometry, frames_with_one_detector_png_missing) and "
     "repairs (e.g. odometry_out_of_order), the source and detections format read, and notes naming files.",
     col("check", pa.string(), "name of the count (e.g. skipped_duplicate_frame), or 'note', 'source', "

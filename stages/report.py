@@ -171,7 +171,7 @@ max-height:24em;overflow:auto;font-size:0.8em}.note{color:#a40}"""
 
 
 def input_checks_html(checks: pd.DataFrame | None) -> str:
-    """What ingest counted (skips, repairs, totals) and its notes (docs/bad_input.md)."""
+    """What ingest counted (skips, repairs, totals) and its notes (README.md, section Bad input)."""
     if checks is None or checks.empty:
         return "<p>No input checks recorded (run `pag ingest`).</p>"
     counts = checks[checks.check != "note"].copy()

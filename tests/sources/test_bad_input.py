@@ -1,5 +1,5 @@
 """Bad input to ingest: each case is a clear error naming the file and what is wrong, or a counted skip
-named in the stage summary. docs/bad_input.md lists every case with its test (`pytest -k bad_input`)."""
+named in the stage summary. README.md (section Bad input) lists every case with its test (`pytest -k bad_input`)."""
 import json
 import shutil
 from pathlib import Path
