@@ -18,6 +18,7 @@ import pandas as pd
 
 from pipeline.catalog import dataset
 from pipeline.io import read_table
+from pipeline.provenance import stage_costs
 from pipeline.runner import Runner
 
 QUALITY: dict[str, tuple[tuple[str, str], ...]] = {
@@ -74,17 +75,6 @@ class VariantRun:
 def settings(values: dict[str, object]) -> list[str]:
     """{'synth.n_frames': 60} -> ['synth.n_frames=60'] (runner overrides)."""
     return [f"{k}={v}" for k, v in values.items()]
-
-
-def stage_costs(data_root: Path, seq: str, stages: list[str]) -> pd.DataFrame:
-    """Seconds and peak memory per stage from the runner's manifest records (NaN where a record lacks them)."""
-    rows = []
-    for name in stages:
-        path = data_root / "interim" / seq / "_manifest" / f"{name}.json"
-        rec = json.loads(path.read_text()) if path.is_file() else {}
-        rows.append({"stage": name, "seconds": float(rec.get("seconds", np.nan)),
-                     "peak_rss_mb": float(rec.get("peak_rss_mb", np.nan))})
-    return pd.DataFrame(rows, columns=["stage", "seconds", "peak_rss_mb"])
 
 
 def quality(data_root: Path, seq: str) -> dict[str, float]:
