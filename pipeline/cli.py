@@ -23,9 +23,9 @@ from pathlib import Path
 from pipeline.dag import STAGE_ORDER
 
 
-def _common(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--seq", default="synth_row", help="sequence folder under data/raw/ (default: synth_row)")
-    p.add_argument("--config", type=Path, default=None, help="YAML file with config sections")
+def _run_options(p: argparse.ArgumentParser, config_help: str = "YAML file with config sections") -> None:
+    """Options of every command that runs stages (one row, all stages, a campaign)."""
+    p.add_argument("--config", type=Path, default=None, help=config_help)
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                    help="override a config value, e.g. --set synth.seed=3 (repeatable)")
     p.add_argument("--data-root", type=Path, default=Path("data"), help="data folder (default: ./data)")
@@ -34,6 +34,11 @@ def _common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--scheduler", default=None, metavar="ADDRESS",
                    help="dask.distributed scheduler address for nerf_fit (default: a local cluster)")
     p.add_argument("--debug", action="store_true", help="show tracebacks")
+
+
+def _common(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--seq", default="synth_row", help="sequence folder under data/raw/ (default: synth_row)")
+    _run_options(p)
 
 
 def parser() -> argparse.ArgumentParser:
@@ -49,16 +54,7 @@ def parser() -> argparse.ArgumentParser:
     p_camp = sub.add_parser("campaign", help="run many rows, their windows on one Dask cluster, and gather "
                             "their tables into data/processed/_campaign/")
     p_camp.add_argument("--seqs", nargs="+", required=True, metavar="SEQ", help="sequence folders under data/raw/")
-    p_camp.add_argument("--config", type=Path, default=None,
-                        help="YAML file with config sections, and per-row ones under rows: {SEQ: {...}}")
-    p_camp.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
-                        help="override a config value for every row (repeatable)")
-    p_camp.add_argument("--data-root", type=Path, default=Path("data"), help="data folder (default: ./data)")
-    p_camp.add_argument("--force", action="store_true", help="rerun every stage even if up to date")
-    p_camp.add_argument("--no-progress", action="store_true", help="hide progress bars")
-    p_camp.add_argument("--scheduler", default=None, metavar="ADDRESS",
-                        help="dask.distributed scheduler of an existing cluster (default: a local cluster)")
-    p_camp.add_argument("--debug", action="store_true", help="show tracebacks")
+    _run_options(p_camp, "YAML file with config sections, and per-row ones under rows: {SEQ: {...}}")
     p_cfg = sub.add_parser("config", help="print the resolved config")
     _common(p_cfg)
     p_cfg.add_argument("--doc", action="store_true", help="with each field's documentation")
