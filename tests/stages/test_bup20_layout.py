@@ -89,7 +89,8 @@ def test_release_linked_in_under_a_plain_name_with_the_alternative_odometry(rele
     assert np.allclose(rgbd.tx - wheel.tx, 0.01, atol=1e-6)
 
 
-@pytest.mark.parametrize("seq", ["../row3", "/abs/row3", "a//b", "a/../b", ".hidden", "a/.b", "", "row3/", " row3", "a\\b"])
+@pytest.mark.parametrize("seq", ["../row3", "/abs/row3", "a//b", "a/../b", ".hidden", "a/.b", "", "row3/", " row3",
+                                 "a\\b"])
 def test_sequence_names_cannot_leave_data_raw(seq, tmp_path):
     with pytest.raises(PipelineError, match="--seq must be a folder name"):
         Runner(seq, tmp_path)
