@@ -1,6 +1,7 @@
 # make all [SEQ=name]   set up if needed, generate the synthetic row (or use data/raw/SEQ), run every stage
 # make test             set up if needed and run the test suite
 # make <stage> SEQ=...  run one stage (stage names come from pipeline/dag.py)
+# make campaign SEQS="a b c" [ARGS="--scheduler ADDRESS --config FILE"]   every row, windows on one cluster
 SEQ ?= synth_row
 ARGS ?=
 VENV := .venv
@@ -27,6 +28,11 @@ $(STAMP): pyproject.toml scripts/setup.sh
 
 $(sort $(STAGES) evaluate): $(STAMP)
 	$(PAG) $@ --seq $(SEQ) $(ARGS)
+
+.PHONY: campaign
+campaign: $(STAMP)
+	$(if $(strip $(SEQS)),,$(error give the rows: make campaign SEQS="row_a row_b ..."))
+	$(PAG) campaign --seqs $(SEQS) $(ARGS)
 
 bench: $(STAMP)
 	$(PAG) bench $(ARGS)

@@ -88,7 +88,16 @@ def family_section(path: Path) -> str:
     df = pd.read_parquet(path)
     num = [c for c in df.columns if pd.api.types.is_numeric_dtype(df[c]) and c != "row"]
     show = df[["row"] + num] if "row" in df.columns else df[num]
-    return f"Row family (`pag bench rows`), commit `{table_commit(path)}`:\n\n" + markdown(show)
+    head = f"Row family (`pag bench rows`), commit `{table_commit(path)}`"
+    if "row" in df.columns:
+        from bench._row_family import FAMILY
+
+        done = [r.name for r in FAMILY if r.name in set(df["row"])]
+        if len(done) < len(FAMILY):
+            missing = ", ".join(r.name for r in FAMILY if r.name not in done)
+            head += (f"; {len(done)} of the family's {len(FAMILY)} rows finished (not yet run: {missing}), so the "
+                     f"mean and worst rows cover those {len(done)} only")
+    return head + ":\n\n" + markdown(show)
 
 
 def encoding_section(path: Path) -> str:

@@ -36,6 +36,7 @@ DATASETS: dict[str, Dataset] = {
         Dataset("raw", "dir", "raw", "", "the recorded (or synthetic) row: bag and/or PNG folder, detector output, gt/"),
         _t("frames", "interim", "paired colour+depth frames with odometry poses and intrinsics"),
         _t("detections", "interim", "detector segments per frame, as ingested"),
+        _t("input_checks", "interim", "what ingest skipped, repaired or found missing: counts and notes"),
         Dataset("images", "dir", "interim", "images", "extracted rgb/ and depth/ PNGs of every frame"),
         _t("detections_filtered", "interim", "detector segments with the depth filter's verdict", "detections"),
         _t("gt_segments", "interim", "ground-truth segments with the depth filter's verdict"),

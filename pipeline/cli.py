@@ -2,6 +2,8 @@
 
     pag <stage> --seq SEQ [--config FILE] [--set key=value ...] [--force]
     pag all --seq SEQ [--from STAGE] [--to STAGE] [--force]
+    pag campaign --seqs SEQ [SEQ ...] [--scheduler ADDRESS]   every row, windows on one Dask cluster,
+                                         then data/processed/_campaign/ (docs/campaign.md)
     pag bench <name> [args ...]          (bench/<name>.py; `pag bench list`)
     pag config --seq SEQ [--doc]         resolved config (with field docs)
     pag schema [TABLE]                   table columns, units and docs
@@ -21,9 +23,9 @@ from pathlib import Path
 from pipeline.dag import STAGE_ORDER
 
 
-def _common(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--seq", default="synth_row", help="sequence folder under data/raw/ (default: synth_row)")
-    p.add_argument("--config", type=Path, default=None, help="YAML file with config sections")
+def _run_options(p: argparse.ArgumentParser, config_help: str = "YAML file with config sections") -> None:
+    """Options of every command that runs stages (one row, all stages, a campaign)."""
+    p.add_argument("--config", type=Path, default=None, help=config_help)
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                    help="override a config value, e.g. --set synth.seed=3 (repeatable)")
     p.add_argument("--data-root", type=Path, default=Path("data"), help="data folder (default: ./data)")
@@ -32,6 +34,11 @@ def _common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--scheduler", default=None, metavar="ADDRESS",
                    help="dask.distributed scheduler address for nerf_fit (default: a local cluster)")
     p.add_argument("--debug", action="store_true", help="show tracebacks")
+
+
+def _common(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--seq", default="synth_row", help="sequence folder under data/raw/ (default: synth_row)")
+    _run_options(p)
 
 
 def parser() -> argparse.ArgumentParser:
@@ -44,6 +51,10 @@ def parser() -> argparse.ArgumentParser:
     _common(p_all)
     p_all.add_argument("--from", dest="from_stage", choices=STAGE_ORDER, default=None, help="first stage to run")
     p_all.add_argument("--to", dest="to_stage", choices=STAGE_ORDER, default=None, help="last stage to run")
+    p_camp = sub.add_parser("campaign", help="run many rows, their windows on one Dask cluster, and gather "
+                            "their tables into data/processed/_campaign/")
+    p_camp.add_argument("--seqs", nargs="+", required=True, metavar="SEQ", help="sequence folders under data/raw/")
+    _run_options(p_camp, "YAML file with config sections, and per-row ones under rows: {SEQ: {...}}")
     p_cfg = sub.add_parser("config", help="print the resolved config")
     _common(p_cfg)
     p_cfg.add_argument("--doc", action="store_true", help="with each field's documentation")
@@ -79,6 +90,21 @@ def _bench(name: str, argv: list[str]) -> int:
     return int(mod.main(argv) or 0)
 
 
+def _campaign(args: argparse.Namespace) -> int:
+    from pipeline.campaign import campaign_dir, run_campaign
+
+    outcomes = run_campaign(args.seqs, data_root=args.data_root, config_file=args.config,
+                            overrides=list(args.overrides), scheduler=args.scheduler, force=args.force,
+                            show_progress=False if args.no_progress else None)
+    failed = [o for o in outcomes if o.status != "ok"]
+    for o in failed:
+        print(f"pag campaign: row {o.seq} failed: {o.error}", file=sys.stderr)
+    out = campaign_dir(args.data_root)
+    print(f"[pag] campaign: {len(outcomes) - len(failed)} of {len(outcomes)} rows ok; dataset {out}; "
+          f"report: {(out / 'report.html').resolve()}")
+    return 1 if failed else 0
+
+
 def dispatch(args: argparse.Namespace) -> int:
     if args.command == "stages":
         from pipeline import dag
@@ -94,6 +120,8 @@ def dispatch(args: argparse.Namespace) -> int:
         return 0
     if args.command == "bench":
         return _bench(args.name, args.args)
+    if args.command == "campaign":
+        return _campaign(args)
     runner = _runner(args)
     if args.command == "config":
         from pipeline import config as cfgmod

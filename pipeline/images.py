@@ -47,8 +47,14 @@ def read_label(path: Path, kind: str) -> np.ndarray:
 
 def write_png(path: Path, img: np.ndarray) -> None:
     """Write uint8/uint16 PNG (RGB arrays are given in RGB order)."""
-    path.parent.mkdir(parents=True, exist_ok=True)
+    from pipeline.io import write_error
+
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise write_error(path, err) from err
     if img.ndim == 3:
         img = cv2.cvtColor(img, cv2.COLOR_RGB2BGR)
     if not cv2.imwrite(str(path), img):
-        raise ImageError(f"could not write {path}")
+        path.unlink(missing_ok=True)
+        raise write_error(path)

@@ -1,6 +1,8 @@
 """Reading and writing datasets: atomic table writes, atomic directory swaps, content hashes."""
 from __future__ import annotations
 
+import contextlib
+import errno
 import hashlib
 import json
 import os
@@ -36,15 +38,54 @@ def fsync_tree(path: Path) -> None:
         fsync_dir(d)
 
 
+class WriteError(OSError):
+    """An output cannot be written (disk full, read-only folder, a file where a folder should be); the message
+    names the file and the cause."""
+
+
+def write_error(path: Path, err: OSError | None = None) -> WriteError:
+    """A WriteError for `path` that says why: from the OS error, or (err None, e.g. an image library that only
+    reports failure) from the state of the disk and the folder."""
+    folder = path.parent
+    while not folder.exists() and folder != folder.parent:
+        folder = folder.parent
+    code = err.errno if err is not None else None
+    if code is None:
+        try:
+            if shutil.disk_usage(folder).free < (1 << 20):
+                code = errno.ENOSPC
+        except OSError:
+            pass
+        if code is None and folder.is_dir() and not os.access(folder, os.W_OK):
+            code = errno.EACCES
+    if code in (errno.ENOSPC, errno.EDQUOT):
+        why = f"the disk is full (no space left on the device holding {folder}); free some space and rerun"
+    elif code in (errno.EACCES, errno.EPERM, errno.EROFS):
+        why = f"the folder {folder} is read-only or not writable by this user"
+    elif code in (errno.ENOTDIR, errno.EEXIST) or (folder.exists() and not folder.is_dir()):
+        why = f"{folder} is a file, not a folder"
+    else:
+        why = err.strerror if err is not None and err.strerror else "the write failed"
+    out = WriteError(code or 0, f"cannot write {path}: {why}; no partial output was kept")
+    out.filename = str(path)
+    return out
+
+
 def atomic_write_bytes(path: Path, data: bytes) -> None:
-    """Write to a temp file beside `path`, fsync, rename: readers see the old or the new file, never half."""
-    path.parent.mkdir(parents=True, exist_ok=True)
+    """Write to a temp file beside `path`, fsync, rename: readers see the old or the new file, never half.
+    A failure (disk full, read-only folder) removes the temp file and raises a WriteError naming `path`."""
     tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    with open(tmp, "wb") as fh:
-        fh.write(data)
-        fh.flush()
-        os.fsync(fh.fileno())
-    os.replace(tmp, path)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with open(tmp, "wb") as fh:
+            fh.write(data)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except OSError as err:
+        with contextlib.suppress(OSError):
+            tmp.unlink()
+        raise write_error(path, err) from err
     fsync_dir(path.parent)
 
 
@@ -109,7 +150,10 @@ def staging_dir(final: Path) -> Path:
     path = final.with_name(f".{final.name}.staging-{os.getpid()}")
     if path.exists():
         shutil.rmtree(path)
-    path.mkdir(parents=True)
+    try:
+        path.mkdir(parents=True)
+    except OSError as err:
+        raise write_error(path, err) from err
     return path
 
 

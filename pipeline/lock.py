@@ -14,6 +14,8 @@ import os
 import sys
 from pathlib import Path
 
+from pipeline import io
+
 
 class RowLocked(RuntimeError):
     """Another process is running stages of the same row."""
@@ -36,8 +38,11 @@ class RowLock:
         if self.fd is not None:  # re-entrant within one process (Runner.run called again)
             self.depth += 1
             return self
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        fd = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o644)
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            fd = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o644)
+        except OSError as err:  # read-only data/, a file where a folder should be, a full disk
+            raise io.write_error(self.path, err) from None
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:

@@ -5,12 +5,15 @@ which puts a message on a distributed Queue; the caller's process drains it into
 per task (pipeline/progress.py: a bar on a terminal, lines in a log), so progress made inside worker
 processes reaches the user's stderr.
 A task that raises does not stop the others: its exception is returned in its slot.
+Inside a `shared_cluster` block (a campaign), every map_tasks call of the process, from any thread,
+submits to one cluster opened on first use, so several rows' windows share its workers.
 """
 from __future__ import annotations
 
 import contextlib
 import logging
 import os
+import threading
 import time
 import uuid
 from collections.abc import Callable, Iterator
@@ -26,6 +29,8 @@ class TaskOutcome:
     result: Any = None
     error: BaseException | None = None
     seconds: float = 0.0
+    worker: str = ""
+    """name of the dask worker that ran the task ('' if unknown, e.g. it failed)."""
 
 
 _QUEUE_NAME: str | None = None
@@ -60,16 +65,37 @@ def keep_freed_memory() -> bool:
         return False
 
 
-def _run_task(fn: Callable, payload: Any, queue_name: str, threads: int) -> tuple[Any, float]:
+def worker_name() -> str:
+    """Name of the dask worker running the calling task ('' outside a worker)."""
+    try:
+        from distributed import get_worker
+
+        return str(get_worker().name)
+    except (ImportError, ValueError):
+        return ""
+
+
+def _worker_threads() -> int:
+    """Cores of this worker's machine per task slot of the worker."""
+    from distributed import get_worker
+
+    try:
+        slots = get_worker().state.nthreads
+    except (ValueError, AttributeError):
+        slots = 1
+    return max(1, (os.cpu_count() or 1) // max(1, slots))
+
+
+def _run_task(fn: Callable, payload: Any, queue_name: str, threads: int) -> tuple[Any, float, str]:
     global _QUEUE_NAME
     import torch
 
     _QUEUE_NAME = queue_name
     keep_freed_memory()  # also on workers of a cluster this process did not start (--scheduler)
-    torch.set_num_threads(max(1, threads))
+    torch.set_num_threads(threads if threads > 0 else _worker_threads())
     t0 = time.perf_counter()
     try:
-        return fn(payload), time.perf_counter() - t0
+        return fn(payload), time.perf_counter() - t0, worker_name()
     finally:
         _QUEUE_NAME = None
 
@@ -85,9 +111,15 @@ def client_for(scheduler: str | None, n_workers: int, threads_per_worker: int) -
 
     for name in ("distributed", "distributed.nanny", "distributed.scheduler", "distributed.core"):
         logging.getLogger(name).setLevel(logging.ERROR)
+    # The client is not entered as a context manager: that sets dask's current-client context variable,
+    # which must be reset in the same context, and a campaign opens its shared client from a row's thread
+    # and closes it from the main one.
     if scheduler:
-        with Client(scheduler, timeout="30s") as client:
+        client = Client(scheduler, timeout="30s")
+        try:
             yield client
+        finally:
+            client.close()
         return
     import dask
 
@@ -98,8 +130,61 @@ def client_for(scheduler: str | None, n_workers: int, threads_per_worker: int) -
     # process; `pag bench dask` times it). None removes the variable from the workers' environment.
     with dask.config.set({"distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None}), \
             LocalCluster(n_workers=n_workers, threads_per_worker=1, processes=True, dashboard_address=None,
-                         silence_logs=40, env=env) as cluster, Client(cluster) as client:
-        yield client
+                         silence_logs=40, env=env) as cluster:
+        client = Client(cluster)
+        try:
+            yield client
+        finally:
+            client.close()
+
+
+@dataclass
+class _Shared:
+    scheduler: str | None
+    n_workers: int
+    threads_per_worker: int
+    """torch threads per task; 0 = decided on each worker (its cores / its task slots)."""
+    client: Any = None
+    stack: contextlib.ExitStack | None = None
+
+
+_SHARED: _Shared | None = None
+_SHARED_LOCK = threading.Lock()
+
+
+@contextlib.contextmanager
+def shared_cluster(scheduler: str | None, n_workers: int, threads_per_worker: int) -> Iterator[None]:
+    """Within the block, map_tasks (from any thread of this process) submits to one cluster: the scheduler
+    at `scheduler`, or a local cluster of `n_workers` processes started on first use and closed at the end."""
+    global _SHARED
+    if _SHARED is not None:
+        raise RuntimeError("shared_cluster blocks cannot be nested")
+    _SHARED = _Shared(scheduler, n_workers, threads_per_worker)
+    try:
+        yield
+    finally:
+        shared, _SHARED = _SHARED, None
+        if shared.stack is not None:
+            shared.stack.close()
+
+
+def _shared_client() -> Any:
+    with _SHARED_LOCK:
+        if _SHARED.client is None:
+            _SHARED.stack = contextlib.ExitStack()
+            _SHARED.client = _SHARED.stack.enter_context(
+                client_for(_SHARED.scheduler, _SHARED.n_workers, max(1, _SHARED.threads_per_worker)))
+        return _SHARED.client
+
+
+def task_threads(threads_per_worker: int, n_workers: int) -> int:
+    """torch threads per task: the setting if > 0, else what the shared cluster says (0 = decided on the
+    worker), else this machine's cores / n_workers."""
+    if threads_per_worker > 0:
+        return threads_per_worker
+    if _SHARED is not None:
+        return _SHARED.threads_per_worker
+    return max(1, (os.cpu_count() or 1) // max(1, n_workers))
 
 
 def map_tasks(fn: Callable[[Any], Any], payloads: dict[str, Any], n_workers: int = 0, threads_per_worker: int = 0,
@@ -110,10 +195,11 @@ def map_tasks(fn: Callable[[Any], Any], payloads: dict[str, Any], n_workers: int
     from distributed import Queue, as_completed
 
     n_workers = n_workers or default_workers(len(payloads))
-    threads = threads_per_worker or max(1, (os.cpu_count() or 1) // n_workers)
+    threads = task_threads(threads_per_worker, n_workers)
     outcomes: dict[str, TaskOutcome] = {}
     queue_name = f"pag-progress-{uuid.uuid4().hex[:8]}"
-    with client_for(scheduler, n_workers, threads) as client:
+    opened = contextlib.nullcontext(_shared_client()) if _SHARED is not None else client_for(scheduler, n_workers, threads)
+    with opened as client:
         queue = Queue(queue_name, client=client)
         futures = {client.submit(_run_task, fn, p, queue_name, threads, key=f"{desc}-{k}-{uuid.uuid4().hex[:6]}",
                                  pure=False): k for k, p in payloads.items()}
@@ -138,8 +224,8 @@ def map_tasks(fn: Callable[[Any], Any], payloads: dict[str, Any], n_workers: int
             for fut in finished:
                 key = futures[fut]
                 try:
-                    result, seconds = fut.result()
-                    outcomes[key] = TaskOutcome(key, result=result, seconds=seconds)
+                    result, seconds, worker = fut.result()
+                    outcomes[key] = TaskOutcome(key, result=result, seconds=seconds, worker=worker)
                 except Exception as err:  # keep going: the other tasks finish
                     outcomes[key] = TaskOutcome(key, error=err)
                 drain()  # the task's last messages before its end line

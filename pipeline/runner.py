@@ -23,6 +23,7 @@ from pipeline import config as cfgmod
 from pipeline import codehash, dag, io, provenance
 from pipeline.catalog import DATASETS, dataset
 from pipeline.lock import RowLock
+from pipeline.resources import PeakMemory
 from pipeline.stage import StageContext
 
 log = logging.getLogger("pag")
@@ -43,6 +44,8 @@ class StageResult:
     status: str  # "ran" | "skipped"
     seconds: float = 0.0
     summary: dict[str, Any] = field(default_factory=dict)
+    peak_rss_mb: float = 0.0
+    """largest resident memory of the pipeline process and its workers while the stage ran (MiB, sampled)."""
 
 
 def code_hash(stage: dag.Stage) -> str:
@@ -55,12 +58,23 @@ def code_hash(stage: dag.Stage) -> str:
     return codehash.code_hash([stage.module.__name__, *schema_modules], REPO_ROOT, files=files)
 
 
+def valid_seq(seq: str) -> bool:
+    """A sequence is a folder under data/raw/: one name, or names joined by '/' (a BUP20 release placed under
+    data/raw/ gives `20200924/row3`). Names may hold spaces and non-ASCII letters; never absolute, no empty
+    part, no part starting with '.' (so never '..'), no backslash or control character."""
+    parts = seq.split("/")
+    return bool(seq) and all(p and not p.startswith(".") and p == p.strip() and "\\" not in p
+                             and all(c.isprintable() for c in p) for p in parts)
+
+
 class Runner:
     def __init__(self, seq: str, data_root: Path = Path("data"), config_file: Path | None = None,
                  overrides: list[str] | tuple[str, ...] = (), show_progress: bool | None = None,
                  stages: list[dag.Stage] | None = None):
-        if not seq or "/" in seq or seq.startswith("."):
-            raise PipelineError(f"--seq must be a folder name under data/raw/, got {seq!r}")
+        if not valid_seq(seq):
+            raise PipelineError(f"--seq must be a folder name under data/raw/, or such names joined by '/' for a nested "
+                                f"folder such as 20200924/row3 (no empty part, no part starting with '.', no leading "
+                                f"or trailing space); got {seq!r}")
         self.seq = seq
         self.data_root = Path(data_root)
         self.stages = dag.check(stages) if stages is not None else dag.build()
@@ -200,6 +214,7 @@ class Runner:
                            device=run_cfg.device, scheduler=run_cfg.scheduler or None, resume_dir=resume / key)
         print(f"[pag] {s.name}: running", file=sys.stderr)
         t0 = time.perf_counter()
+        memory = PeakMemory().start()  # this process and its workers
         try:
             outputs = s.module.run(inputs, self.config[s.name], ctx)
             tables = [o for o in s.outputs if dataset(o).kind == "table"]
@@ -218,8 +233,11 @@ class Runner:
             for path in staging.values():
                 shutil.rmtree(path, ignore_errors=True)
             raise
+        finally:
+            memory.stop()
         seconds = time.perf_counter() - t0
-        record = {"stage": s.name, "key": key, "seconds": round(seconds, 3), "inputs": input_hashes,
+        record = {"stage": s.name, "key": key, "seconds": round(seconds, 3),
+                  "peak_rss_mb": round(memory.peak_mb, 1), "inputs": input_hashes,
                   "outputs": {o: self.hashes.tree_hash(self._input_path(o)) for o in s.outputs},
                   "config": cfgmod.to_dict(self.config[s.name]), "summary": ctx.summary,
                   "finished_unix": time.time(), "code_version": provenance.code_version()}
@@ -232,4 +250,4 @@ class Runner:
         print(f"[pag] {s.name}: done in {seconds:.1f} s" + (f" ({brief})" if brief else ""), file=sys.stderr)
         for note in ctx.summary.get("notes", []):
             print(f"[pag] {s.name}: {note}", file=sys.stderr)
-        return StageResult(s.name, "ran", seconds, ctx.summary)
+        return StageResult(s.name, "ran", seconds, ctx.summary, memory.peak_mb)

@@ -15,6 +15,7 @@ import pyarrow as pa
 TABLES: tuple[str, ...] = (
     "frames",
     "detections",
+    "input_checks",
     "windows",
     "gt_segments",
     "colmap_poses",
@@ -26,6 +27,7 @@ TABLES: tuple[str, ...] = (
     "fruits",
     "counts",
     "evaluation",
+    "campaign_rows",
     "bench_encoding",
 )
 

@@ -36,5 +36,6 @@ SCHEMA = table_schema(
     col("depth_pose_votes", pa.int32(), "'scale': frame pairs whose ICP voted; 'icp': consecutive-frame links taken "
         "from ICP"),
     col("depth_pose_note", pa.string(), "what was left to the odometry and why ('' if nothing)"),
+    col("worker", pa.string(), "name of the dask worker that fitted the window ('' if it failed)"),
     col("checkpoint_path", pa.string(), "model checkpoint (torch.save), relative to data/; '' if failed"),
 )

@@ -163,14 +163,29 @@ def read_params(path: Path) -> tuple[Camera, np.ndarray]:
     except yaml.YAMLError as err:
         raise IngestError(f"{path} is not valid YAML: {err}") from err
     try:
-        k = np.array(p["K"], np.float64).reshape(3, 3)
-        t = np.array(p["T_robot_camera"], np.float64).reshape(4, 4)
+        k = np.array(p["K"], np.float64)
+        t = np.array(p["T_robot_camera"], np.float64)
         w, h = int(p["width"]), int(p["height"])
     except (KeyError, TypeError, ValueError) as err:
         raise IngestError(f"{path}: expected keys K (3x3), T_robot_camera (4x4), width, height; "
                           f"problem with {err}; keys present: {sorted(p) if isinstance(p, dict) else p!r}") from err
-    if not np.allclose(t[3], [0, 0, 0, 1]) or not np.allclose(t[:3, :3] @ t[:3, :3].T, np.eye(3), atol=1e-4):
-        raise IngestError(f"{path}: T_robot_camera is not a rigid transform")
+    if k.shape == (9,):
+        k = k.reshape(3, 3)
+    if k.shape != (3, 3) or not np.isfinite(k).all() or not np.allclose(k[2], [0, 0, 1]):
+        raise IngestError(f"{path}: K must be a 3x3 intrinsics matrix [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] "
+                          f"(nested lists or 9 values row-major), got shape {k.shape}: {k.tolist()}")
+    if t.shape == (16,):
+        t = t.reshape(4, 4)
+    if t.shape != (4, 4) or not np.isfinite(t).all():
+        raise IngestError(f"{path}: T_robot_camera must be a 4x4 matrix, got shape {t.shape}")
+    r = t[:3, :3]
+    if not np.allclose(t[3], [0, 0, 0, 1]):
+        raise IngestError(f"{path}: T_robot_camera is not a rigid transform: its last row is {t[3].tolist()}, "
+                          f"expected [0, 0, 0, 1]")
+    if not np.allclose(r @ r.T, np.eye(3), atol=1e-4) or np.linalg.det(r) < 0:
+        raise IngestError(f"{path}: T_robot_camera is not a rigid transform: its rotation part is not orthonormal "
+                          f"with determinant +1 (R R^T deviates from I by {np.abs(r @ r.T - np.eye(3)).max():.3g}, "
+                          f"det R = {np.linalg.det(r):.4g}); scale or shear does not belong in the extrinsics")
     return Camera(k, w, h, str(path)), t
 
 
@@ -178,6 +193,13 @@ class FrameSource:
     """A recording whose frames can be decoded in stamp order."""
 
     recording: Recording
+
+    def describe(self) -> str:
+        raise NotImplementedError
+
+    def where(self, ci: int, di: int) -> str:
+        """The files or messages of colour image ci and depth image di, for errors."""
+        return f"colour image {ci} and depth image {di} of {self.describe()}"
 
     def frames(self, pairs: list[tuple[int, int]]) -> Iterator[tuple[int, np.ndarray | None, np.ndarray | None, str]]:
         """Yield (colour index, rgb [H, W, 3] uint8, depth [H, W] float32 metres with 0 = invalid, error)

@@ -13,6 +13,14 @@ from sources.common import FrameSource, IngestError, Recording, Trajectory, pose
 ODOM_COLUMNS = ["timestamp", "tx", "ty", "tz", "qx", "qy", "qz", "qw"]
 
 
+def _is_stamp(text: str) -> bool:
+    try:
+        stamp_from_name(text)
+    except IngestError:
+        return False
+    return True
+
+
 def read_odometry_csv(path: Path, counts: dict[str, int]) -> Trajectory:
     if not path.is_file():
         raise IngestError(f"{path} not found: expected odometry.csv with columns {ODOM_COLUMNS}")
@@ -25,7 +33,12 @@ def read_odometry_csv(path: Path, counts: dict[str, int]) -> Trajectory:
         raise IngestError(f"{path}: columns {missing} missing; columns present: {list(df.columns)}")
     if df.empty:
         raise IngestError(f"{path} has no odometry rows")
-    stamps = np.array([stamp_from_name(str(s).strip()) for s in df["timestamp"]], np.int64)
+    try:
+        stamps = np.array([stamp_from_name(str(s).strip()) for s in df["timestamp"]], np.int64)
+    except IngestError:
+        bad = next(n for n, s in enumerate(df["timestamp"]) if not _is_stamp(str(s).strip()))
+        raise IngestError(f"{path}, data row {bad + 1}: timestamp {df['timestamp'].iloc[bad]!r} is not a time "
+                          f"(expected integer ns or decimal seconds)") from None
     values = df[ODOM_COLUMNS[1:]].to_numpy(np.float64)
     bad = ~np.isfinite(values).all(1)
     if bad.any():
@@ -45,6 +58,22 @@ def read_odometry_csv(path: Path, counts: dict[str, int]) -> Trajectory:
     return Trajectory(stamps[keep], poses, str(path))
 
 
+def images_by_stamp(folder: Path, what: str, counts: dict[str, int]) -> dict[int, Path]:
+    """{stamp_ns: file} of a folder of PNGs named by stamp; two names for one stamp (1600000000.5.png and
+    1600000000500000000.png) keep the first by name and are counted."""
+    out: dict[int, Path] = {}
+    for p in sorted(folder.glob("*.png")):
+        try:
+            stamp = stamp_from_name(p.stem)
+        except IngestError as err:
+            raise IngestError(f"{p}: {err}; every PNG in {folder} must be named by its timestamp") from None
+        if stamp in out:
+            counts[f"{what}_duplicate_stamps"] = counts.get(f"{what}_duplicate_stamps", 0) + 1
+            continue
+        out[stamp] = p
+    return out
+
+
 class PngFolder(FrameSource):
     def __init__(self, root: Path, odometry_csv: str = "odometry.csv"):
         self.root = root
@@ -55,10 +84,10 @@ class PngFolder(FrameSource):
         counts: dict[str, int] = {}
         camera, t_rc = read_params(root / "params.yaml")
         odom = read_odometry_csv(root / odometry_csv, counts)
-        rgb = {stamp_from_name(p.stem): p for p in rgb_dir.glob("*.png")}
+        rgb = images_by_stamp(rgb_dir, "color", counts)
         if not rgb:
             raise IngestError(f"{rgb_dir} holds no PNG images")
-        depth = {stamp_from_name(p.stem): p for p in depth_dir.glob("*.png")} if depth_dir.is_dir() else {}
+        depth = images_by_stamp(depth_dir, "depth", counts) if depth_dir.is_dir() else {}
         # file names carry the stamps; their listing order means nothing
         color_stamps = np.array(sorted(rgb), np.int64)
         depth_stamps = np.array(sorted(depth), np.int64)
@@ -69,6 +98,9 @@ class PngFolder(FrameSource):
 
     def describe(self) -> str:
         return f"PNG folder {self.root}"
+
+    def where(self, ci: int, di: int) -> str:
+        return f"{self.rgb_files[ci]} and {self.depth_files[di]}"
 
     def frames(self, pairs: list[tuple[int, int]]) -> Iterator[tuple[int, np.ndarray | None, np.ndarray | None, str]]:
         for ci, di in pairs:

@@ -64,7 +64,7 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
         depth = read_depth_m(ctx.abspath(fr.depth_path), fr.depth_scale_m)
         near = (depth > 0) & (depth <= cfg.max_depth_m)
         idx = by_frame.get(fr.frame_id)
-        if idx is not None and fr.det_instance_path is not None:
+        if idx is not None and isinstance(fr.det_instance_path, str):
             inst = read_label(ctx.abspath(fr.det_instance_path), "detector instance")
             if inst.shape != depth.shape:
                 raise ValueError(f"frame {fr.frame_id}: detector instance PNG {fr.det_instance_path} is "
@@ -75,7 +75,7 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
             dets.loc[idx, "near_depth_frac"] = frac
             dets.loc[idx, "kept"] = kept
             dets.loc[idx, "drop_reason"] = reasons
-        if fr.gt_instance_path is not None and fr.gt_semantic_path is not None:
+        if isinstance(fr.gt_instance_path, str) and isinstance(fr.gt_semantic_path, str):
             inst = read_label(ctx.abspath(fr.gt_instance_path), "ground-truth instance")
             sem = read_label(ctx.abspath(fr.gt_semantic_path), "ground-truth semantic")
             ids = np.unique(inst[(inst > 0) & np.isin(sem, THING_IDS)])

@@ -44,10 +44,10 @@ class Config:
     depth_poses: DepthPoses = "icp"
     """correct each window's initial poses with its depth frames before the fit (nerf/depth_poses.py): 'icp'
     = the shape of the trajectory from point-to-plane ICP between consecutive frames, placed onto the
-    odometry (about 3 s per window; a link ICP cannot lock keeps the odometry's); 'scale' = only the
-    odometry's scale along the window; 'off' = the odometry (or COLMAP) poses as they are. Pose refinement
-    from colour keeps the scale and drift it starts from. Default row, refined ATE (rigid): off 5.1 mm, scale
-    2.0 mm, against 6.0 mm for the odometry."""
+    odometry (a link ICP cannot lock onto keeps the odometry's); 'scale' = only the odometry's scale along
+    the window; 'off' = the odometry (or COLMAP) poses as they are. Pose refinement from colour keeps the
+    scale and drift it starts from, so keep 'icp' unless the depth is unusable (then 'scale' or 'off');
+    'scale' is bit-for-bit reproducible across processes, ICP only to floating-point noise."""
     workers: int = 0
     """Dask workers for a local cluster (0 = one per core, at most one per window)."""
     threads_per_worker: int = 0
@@ -58,6 +58,17 @@ class Config:
     """random seed of the fits."""
     panoptic: PanopticConfig = field(default_factory=PanopticConfig)
     """the panoptic phase after the colour phase (nerf/panoptic/train.py)."""
+    render_scale: float = 1.0
+    """working scale of the validation renders that fusion and counting use, in (0, 1]: 0.5 renders them at half
+    width and height (intrinsics scaled alike; about a quarter of the render time) and stores them resized back
+    to full size (colour bilinear; depth and labels nearest, so no depth or label is invented between two
+    surfaces). Labelled frames (the window's centre included) are always rendered at full size, so the
+    evaluated frames keep their detail. Validation PSNR is measured on the stored images. Lower it for large
+    images (1280x720) where full-size renders dominate the cost; 1 = full size (no resizing)."""
+
+    def __post_init__(self) -> None:
+        if not 0 < self.render_scale <= 1:
+            raise ValueError(f"nerf_fit.render_scale must be in (0, 1], got {self.render_scale}")
 
 
 def model_config(cfg: Config) -> NerfConfig:
@@ -70,7 +81,52 @@ def window_payload(wid: int, w: pd.DataFrame, cfg: Config, mcfg: NerfConfig, dev
     """The task fit_one runs for window `wid` (its frame rows `w` with their initial poses)."""
     return {"window_id": wid, "frames": w.to_dict("list"), "cfg": replace(mcfg, seed=cfg.seed + wid), "device": device,
             "out_dir": str(Path(out_dir).resolve()), "data_root": str(Path(data_root).resolve()),
-            "panoptic": cfg.panoptic, "depth_poses": cfg.depth_poses, "detections": detections}
+            "panoptic": cfg.panoptic, "depth_poses": cfg.depth_poses, "detections": detections,
+            "render_scale": cfg.render_scale}
+
+
+def scaled_model(model, scale: float):
+    """The same model seen through a camera with `scale` times the pixels per side: the image size rounded,
+    the intrinsics (fx, fy, cx, cy) scaled by the exact size ratio (pixel centres stay at half-integers, so
+    continuous image coordinates simply scale). Shares the field, grid and poses; nothing is copied."""
+    w, h = model.wh
+    ws, hs = max(1, round(w * scale)), max(1, round(h * scale))
+    k = model.intrinsics.clone()
+    k[:, 0::2] *= ws / w  # fx, cx
+    k[:, 1::2] *= hs / h  # fy, cy
+    return replace(model, intrinsics=k, wh=(ws, hs))
+
+
+def to_full_size(out: dict, wh: tuple[int, int]) -> dict:
+    """A render made at a working scale, resized to the image size wh = (W, H): rgb bilinear; depth, opacity
+    and labels nearest-neighbour. Tensors stay tensors, arrays stay arrays."""
+    import cv2
+    import torch
+
+    w, h = wh
+
+    def resize(a, linear: bool):
+        is_tensor = isinstance(a, torch.Tensor)
+        arr = a.detach().cpu().numpy() if is_tensor else np.asarray(a)
+        # cv2 resizes uint8, uint16 and float32; other types (int32 slot ids) go through float32, exact below 2^24
+        src = arr if arr.dtype in (np.uint8, np.uint16, np.float32) else arr.astype(np.float32)
+        r = cv2.resize(src, (w, h), interpolation=cv2.INTER_LINEAR if linear else cv2.INTER_NEAREST).astype(arr.dtype)
+        return torch.from_numpy(r).to(a.device) if is_tensor else r
+
+    res = dict(out)
+    for key in ("rgb", "depth", "opacity", "semantic", "instance"):
+        if key in out:
+            res[key] = resize(out[key], key == "rgb")
+    return res
+
+
+def render_at(render, model, scale: float, full_size: set[int]):
+    """render(model, i) -> a render of frame i at the working `scale` (full size for frames in `full_size`),
+    returned at full size."""
+    if scale >= 1:
+        return lambda i: render(model, i)
+    small = scaled_model(model, scale)
+    return lambda i: render(model, i) if i in full_size else to_full_size(render(small, i), model.wh)
 
 
 def fit_one(payload: dict) -> dict:
@@ -119,8 +175,10 @@ def fit_one(payload: dict) -> dict:
         except Exception as err:
             raise RuntimeError(f"window {wid} (panoptic phase): {err}") from err
         state["panoptic"] = pan.state()
-        validate(res, data, reporting_render(key, lambda i: render_panoptic(res.model, pan, i), data.is_train,
-                                             "panoptic validation render"))
+        full = set(np.flatnonzero(frames[[c for c in ("is_center", "labelled") if c in frames]].any(axis=1)).tolist())
+        validate(res, data, reporting_render(key, render_at(lambda m, i: render_panoptic(m, pan, i), res.model,
+                                                            payload.get("render_scale", 1.0), full),
+                                             data.is_train, "panoptic validation render"))
         val = [int(i) for i in np.flatnonzero(~data.is_train)]
         parallel.report(key, 0, 1, phase="instance completion")
         complete_instances([res.renders[i] for i in val], data.intrinsics[val], res.poses_c2w[val], pan.cfg)
@@ -242,7 +300,7 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
     # workers and threads follow the whole row, also when some windows are reused: a window's fit is then
     # computed with the same thread count as in an uninterrupted run
     n_workers = cfg.workers or parallel.default_workers(len(payloads))
-    threads = cfg.threads_per_worker or max(1, (os.cpu_count() or 1) // n_workers)
+    threads = parallel.task_threads(cfg.threads_per_worker, n_workers)
     resume = ctx.resume_dir.resolve() if ctx.resume_dir is not None else None
     outcomes: dict[str, parallel.TaskOutcome] = {}
     if resume is not None:
@@ -272,7 +330,8 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
         centre = int(windows.loc[windows.window_id == wid, "center_frame_id"].iloc[0])
         w = windows[windows.window_id == wid]
         base = {"window_id": wid, "center_frame_id": centre, "preset": mcfg.preset, "device": ctx.device,
-                "n_train": int((w.split == "train").sum()), "n_val": int((w.split == "val").sum())}
+                "n_train": int((w.split == "train").sum()), "n_val": int((w.split == "val").sum()),
+                "worker": o.worker}
         if o.error is not None:
             msg = str(o.error).splitlines()[0] if str(o.error) else type(o.error).__name__
             ctx.note(f"window {wid} failed: {msg}")

@@ -11,16 +11,19 @@ import numpy as np
 import pandas as pd
 
 from pipeline.classes import DEFAULT_CLASSES, THING_IDS, VOID
+from pipeline.dag import STAGE_ORDER
 from pipeline.images import read_label, read_rgb
+from pipeline.provenance import stage_costs
 from pipeline.stage import StageContext
 from rowmap.colours import id_colours
 from rowmap.renders import Renders
 
 INPUTS = ("frames", "windows", "window_metrics", "nerf", "renders", "panoptic_frames", "panoptic", "fruits", "counts")
-OPTIONAL_INPUTS = ("evaluation",)
+OPTIONAL_INPUTS = ("evaluation", "input_checks")
 OUTPUTS = ("report",)
 
-SECTIONS = ("Run configuration", "Windows", "Centre frames", "Fruit map", "Counts", "Evaluation")
+SECTIONS = ("Run configuration", "Windows", "Centre frames", "Fruit map", "Counts", "Evaluation", "Input checks",
+            "Cost per stage")
 
 
 @dataclass(frozen=True)
@@ -170,6 +173,36 @@ text-align:right}table.img td{padding:2px}table.img img{display:block}pre{backgr
 max-height:24em;overflow:auto;font-size:0.8em}.note{color:#a40}"""
 
 
+def stage_costs_html(ctx: StageContext) -> str:
+    """Wall time and peak memory of each stage that made this row's outputs (the runner's manifest records;
+    the report stage itself is still running, so it is left out)."""
+    costs = stage_costs(ctx.data_root, ctx.seq, [s for s in STAGE_ORDER if s != ctx.stage])
+    costs = costs[costs.seconds.notna()]
+    if not len(costs):
+        return "<p>No stage records found.</p>"
+    total = pd.DataFrame([{"stage": "total", "seconds": costs.seconds.sum(), "peak_rss_mb": costs.peak_rss_mb.max(),
+                           "code_version": ""}])
+    shown = pd.concat([costs, total], ignore_index=True).rename(columns={"peak_rss_mb": "peak memory (MiB)"})
+    return ("<p>Wall time of each stage and the largest resident memory of the pipeline process and its "
+            "workers while it ran, for the run that produced the stage's current outputs (a stage skipped as "
+            "up to date keeps the cost of the run that made it; code_version = the commit it ran).</p>"
+            + table_html(shown))
+
+
+def input_checks_html(checks: pd.DataFrame | None) -> str:
+    """What ingest counted (skips, repairs, totals) and its notes (README.md, section Bad input)."""
+    if checks is None or checks.empty:
+        return "<p>No input checks recorded (run `pag ingest`).</p>"
+    counts = checks[checks.check != "note"].copy()
+    counts["value"] = [str(c) if pd.notna(c) else n for c, n in zip(counts["count"], counts["note"])]
+    notes = checks[checks.check == "note"].note
+    out = "<p>What ingest read, skipped and repaired (a skipped frame or segment is counted here, never " \
+          "dropped silently).</p>" + table_html(counts[["check", "value"]])
+    if len(notes):
+        out += "<ul>" + "".join(f"<li>{html.escape(n)}</li>" for n in notes) + "</ul>"
+    return out
+
+
 def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]:
     metrics: pd.DataFrame = inputs["window_metrics"]
     fruits: pd.DataFrame = inputs["fruits"]
@@ -216,6 +249,8 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
         parts.append(table_html(piv))
     else:
         parts.append("<p>No evaluation (the sequence has no ground truth, or `pag evaluate` has not run).</p>")
+    parts.append(f"<h2>{SECTIONS[6]}</h2>" + input_checks_html(inputs.get("input_checks")))
+    parts.append(f"<h2>{SECTIONS[7]}</h2>" + stage_costs_html(ctx))
     page = (f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>PAg-NeRF report {html.escape(ctx.seq)}"
             f"</title><style>{CSS}</style></head><body>{''.join(parts)}</body></html>")
     out = ctx.output_dir("report") / "report.html"

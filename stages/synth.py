@@ -6,7 +6,8 @@ from collections import deque
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass
-from typing import TypeVar
+from pathlib import Path
+from typing import Literal, TypeVar
 
 import numpy as np
 import pandas as pd
@@ -27,22 +28,37 @@ TOPICS = {"color": "/camera/color/image_raw", "depth": "/camera/aligned_depth_to
           "info": "/camera/color/camera_info", "odom": "/odom", "tf_static": "/tf_static"}
 
 
+PRESETS: dict[str, dict[str, int | float | bool]] = {
+    "small": {"n_frames": 120, "width": 320, "height": 180, "fps": 15.0, "speed_m_per_s": 0.2, "n_labelled": 3,
+              "write_bag": True},
+    "bup20": {"n_frames": 450, "width": 1280, "height": 720, "fps": 15.0, "speed_m_per_s": 0.2, "n_labelled": 5,
+              "write_bag": False},
+}
+"""Row sizes: `small` is the default row (1.6 m, 3 labelled frames); `bup20` has the size of a BUP20 /
+RealSense recording: 1280x720 at 15 fps and 0.2 m/s, 450 frames = 6 m of row, a labelled frame every
+metre (frames 75, 150, ..., 374: one metre from either end, so a window of +-40 frames fits around each).
+The bup20 row writes no bag by default: its uncompressed images would be about 4.6 MB a frame (2 GB)."""
+
+
 @dataclass(frozen=True)
 class Config:
     seed: int = 0
     """random seed: the same settings and seed give byte-identical files; every knob below is deterministic."""
-    n_frames: int = 120
-    """camera frames in the row (120 at 15 fps and 0.2 m/s = 1.6 m of row)."""
-    width: int = 320
-    """image width in pixels."""
-    height: int = 180
-    """image height in pixels."""
+    preset: Literal["small", "bup20"] = "small"
+    """row size preset (PRESETS): fills n_frames, width, height, fps, speed_m_per_s, n_labelled and write_bag where
+    they are not set; `bup20` is a real-size row (1280x720, 450 frames, 6 m)."""
+    n_frames: int | None = None
+    """camera frames in the row (None = the preset's; 120 at 15 fps and 0.2 m/s = 1.6 m of row)."""
+    width: int | None = None
+    """image width in pixels (None = the preset's)."""
+    height: int | None = None
+    """image height in pixels (None = the preset's)."""
     fov_x_deg: float = 69.0
     """horizontal field of view in degrees (RealSense D435 colour: 69); square pixels, centred principal point."""
-    fps: float = 15.0
-    """camera frame rate in Hz."""
-    speed_m_per_s: float = 0.2
-    """mean robot speed along the row."""
+    fps: float | None = None
+    """camera frame rate in Hz (None = the preset's)."""
+    speed_m_per_s: float | None = None
+    """mean robot speed along the row in m/s (None = the preset's)."""
     base_height_m: float = 0.4
     """height of base_link above the floor (the odometry's z)."""
     camera_mast_m: float = 0.35
@@ -89,18 +105,29 @@ class Config:
     """share of detector segment-border pixels left void (255) in the semantic PNG."""
     det_min_area_px: int = 12
     """detector segments smaller than this many pixels are dropped."""
-    n_labelled: int = 3
-    """ground-truth labelled frames (annotations.json, seg/), evenly spread, never the first or last frame."""
+    n_labelled: int | None = None
+    """ground-truth labelled frames (annotations.json, seg/), evenly spread, never the first or last frame
+    (None = the preset's)."""
     supersample: int = 2
     """colour anti-aliasing: 1 = the pixel-centre ray only; 2 = centre plus the 4 pixel corners shared with the
     neighbours (quincunx, about 2 rays per pixel); s >= 3 = an s x s grid per pixel. Depth and labels always
     come from the pixel-centre ray."""
-    write_bag: bool = True
-    """also write the recording as a ROS 1 bag <SEQ>.bag (pixel-identical to the PNGs)."""
+    detections_format: Literal["png_pair", "coco_panoptic", "coco_instances"] = "png_pair"
+    """format of the detector output in pred_seg/: the project's PNG pair + scores.csv, COCO panoptic (JSON + PNG
+    folder, as Detectron2 / Mask2Former write it) or COCO instance results (RLE masks + semantic PNGs for the
+    stuff); all three hold the same segments (docs/detector_formats.md)."""
+    write_bag: bool | None = None
+    """also write the recording as a ROS 1 bag <SEQ>.bag (pixel-identical to the PNGs; None = the preset's:
+    yes for small, no for bup20)."""
     workers: int = 0
     """render threads (0 = one per CPU core, at most 4); the output does not depend on it."""
 
     def __post_init__(self) -> None:
+        if self.preset not in PRESETS:
+            raise ValueError(f"synth.preset must be one of {sorted(PRESETS)}, got {self.preset!r}")
+        for name, value in PRESETS[self.preset].items():  # a field left at None takes the preset's value
+            if getattr(self, name) is None:
+                object.__setattr__(self, name, value)
         positive = ("n_frames", "width", "height", "fps", "speed_m_per_s", "camera_distance_m", "odom_rate_hz",
                     "supersample", "plant_spacing_m", "leaf_node_spacing_m", "leaf_size", "texture_scale")
         for name in positive:
@@ -258,13 +285,18 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
     workers = cfg.workers or min(4, os.cpu_count() or 1)
     rays = render.camera_rays(k, cfg.width, cfg.height, cfg.supersample)
 
-    def render_frame(i: int) -> dict[str, np.ndarray]:
-        return render.render(sc, cam[i], k, cfg.width, cfg.height, cfg.supersample, cfg.texture_scale,
-                             nthreads=1 if workers > 1 else 2, rays=rays)
+    def render_frame(i: int) -> dict:
+        """Ray-cast frame i and run the simulated detector on it (both on a worker thread; the detector's
+        random stream is frame i's own, so the result does not depend on the thread)."""
+        fr = render.render(sc, cam[i], k, cfg.width, cfg.height, cfg.supersample, cfg.texture_scale,
+                           nthreads=1 if workers > 1 else 2, rays=rays)
+        fr["detections"] = detector.detect(fr["semantic"], fr["instance"], fr["depth"], sizes, noise,
+                                           np.random.default_rng([cfg.seed, 3, i]))
+        return fr
 
     bag = None
     if cfg.write_bag:
-        bag = writers.Ros1BagWriter(out / f"{ctx.seq}.bag", TOPICS)
+        bag = writers.Ros1BagWriter(out / f"{Path(ctx.seq).name}.bag", TOPICS)  # (nested SEQ: its last part)
         bag.static_tf(int(odom_stamps[0]), BASE_FRAME, CAMERA_FRAME, trajectory.to_txyzq(t_robot_camera[None])[0])
     odom_txyzq = trajectory.to_txyzq(odom)
     lin, ang = odometry_twist(odom_stamps, odom)
@@ -277,7 +309,7 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
             bag.odom(int(odom_stamps[j]), odom_txyzq[j], lin[j], ang[j], ODOM_FRAME, BASE_FRAME)
             next_odom += 1
 
-    score_rows: list[tuple[int, int, int, float]] = []
+    det_writer = writers.DetectorWriter(out, cfg.detections_format, cfg.width, cfg.height)
     annotated: list[tuple[int, np.ndarray, np.ndarray]] = []
     views = np.zeros(n_ids, np.int32)
     try:
@@ -285,11 +317,9 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
                                             cfg.n_frames)):
             stamp = int(stamps[i])
             depth_mm = depth_to_mm(fr["depth"])
-            det = detector.detect(fr["semantic"], fr["instance"], fr["depth"], sizes, noise,
-                                  np.random.default_rng([cfg.seed, 3, i]))
-            writers.write_frame_pngs(out, stamp, fr["rgb"], depth_mm, fr["semantic"], fr["instance"], det.semantic,
-                                     det.instance)
-            score_rows += [(stamp, sid, klass, score) for sid, klass, score in det.segments]
+            det = fr["detections"]
+            writers.write_frame_pngs(out, stamp, fr["rgb"], depth_mm, fr["semantic"], fr["instance"])
+            det_writer.frame(stamp, det.semantic, det.instance, det.segments)
             for key, n in det.stats.items():
                 ctx.count(f"detector_{key}", n)
             views[np.unique(fr["instance"])] += 1
@@ -308,9 +338,7 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
 
     writers.write_params(out / "params.yaml", k, t_robot_camera, cfg.width, cfg.height)
     writers.write_odometry_csv(out / "odometry.csv", odom_stamps, odom_txyzq)
-    (out / "pred_seg").mkdir(exist_ok=True)
-    pd.DataFrame(score_rows, columns=["stamp_ns", "segment_id", "class_id", "score"]).to_csv(
-        out / "pred_seg" / "scores.csv", index=False)
+    det_writer.close()
     writers.write_json(out / "annotations.json", writers.coco_annotations(annotated, cfg.width, cfg.height))
 
     gt = out / "gt"
@@ -322,7 +350,9 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
     table = fruit_table(fruits, views[1:])
     table.to_parquet(gt / "fruits.parquet", index=False)
     # the settings that made the row (render threads do not change it)
-    settings = {k_: list(v) if isinstance(v, tuple) else v for k_, v in asdict(cfg).items() if k_ != "workers"}
+    # (the preset is left out: the resolved sizes it filled in are written)
+    settings = {k_: list(v) if isinstance(v, tuple) else v for k_, v in asdict(cfg).items()
+                if k_ not in ("workers", "preset")}
     (gt / "synth_config.yaml").write_text(yaml.safe_dump(settings, sort_keys=True))
 
     near = table["near_row"].to_numpy()

@@ -9,7 +9,7 @@ import numpy as np
 import pandas as pd
 import yaml
 
-from pipeline.classes import DEFAULT_CLASSES, THING_IDS
+from pipeline.classes import DEFAULT_CLASSES, THING_IDS, VOID
 from pipeline.images import write_png
 from sources import coco
 
@@ -59,13 +59,68 @@ def write_json(path: Path, obj: dict) -> None:
 
 
 def write_frame_pngs(root: Path, stamp: int, rgb: np.ndarray, depth_mm: np.ndarray, gt_sem: np.ndarray,
-                     gt_inst: np.ndarray, det_sem: np.ndarray, det_inst: np.ndarray) -> None:
+                     gt_inst: np.ndarray) -> None:
     write_png(root / "rgb" / f"{stamp}.png", rgb)
     write_png(root / "depth" / f"{stamp}.png", depth_mm)
     write_png(root / "gt" / "semantic" / f"{stamp}.png", gt_sem)
     write_png(root / "gt" / "instance" / f"{stamp}.png", gt_inst)
-    write_png(root / "pred_seg" / "semantic" / f"{stamp}.png", det_sem)
-    write_png(root / "pred_seg" / "instance" / f"{stamp}.png", det_inst)
+
+
+STUFF_SEGMENT_ID_BASE = 1 << 16
+"""Panoptic segment id of a stuff class = this + class id (never one of the 16-bit thing segment ids)."""
+
+
+class DetectorWriter:
+    """The synthetic detector's output in one of the formats real detectors write (docs/detector_formats.md):
+    'png_pair' (pred_seg/semantic/, instance/, scores.csv), 'coco_panoptic' (pred_seg/panoptic.json +
+    pred_seg/panoptic/<stamp>.png, pixel id = R + 256 G + 256^2 B) or 'coco_instances' (pred_seg/instances.json,
+    a COCO results list with RLE masks, + pred_seg/images.json + pred_seg/semantic/ for the stuff).
+    All three describe the same segments: thing segment ids, classes and scores are kept."""
+
+    def __init__(self, root: Path, fmt: str, width: int, height: int):
+        if fmt not in ("png_pair", "coco_panoptic", "coco_instances"):
+            raise ValueError(f"detector format {fmt!r}; formats: png_pair, coco_panoptic, coco_instances")
+        self.dir, self.fmt, self.width, self.height = root / "pred_seg", fmt, int(width), int(height)
+        self.dir.mkdir(parents=True, exist_ok=True)
+        self.scores: list[tuple[int, int, int, float]] = []
+        self.images: list[dict] = []
+        self.entries: list[dict] = []
+
+    def frame(self, stamp: int, semantic: np.ndarray, instance: np.ndarray,
+              segments: list[tuple[int, int, float]]) -> None:
+        """One frame: semantic [H, W] class ids (255 void), instance [H, W] segment ids, (id, class, score)."""
+        image_id = len(self.images) + 1
+        self.images.append({"id": image_id, "file_name": f"rgb/{stamp}.png", "width": self.width,
+                            "height": self.height})
+        if self.fmt == "png_pair":
+            write_png(self.dir / "semantic" / f"{stamp}.png", semantic)
+            write_png(self.dir / "instance" / f"{stamp}.png", instance)
+            self.scores += [(stamp, sid, klass, score) for sid, klass, score in segments]
+        elif self.fmt == "coco_panoptic":
+            ids = np.where(instance > 0, instance.astype(np.int64), STUFF_SEGMENT_ID_BASE + semantic.astype(np.int64))
+            ids[(instance == 0) & (semantic == VOID)] = 0
+            rgb = np.stack([ids % 256, ids // 256 % 256, ids // 65536], -1).astype(np.uint8)
+            write_png(self.dir / "panoptic" / f"{stamp}.png", rgb)
+            info = [{"id": int(sid), "category_id": int(klass), "isthing": 1, "score": float(score)}
+                    for sid, klass, score in segments]
+            info += [{"id": STUFF_SEGMENT_ID_BASE + int(c), "category_id": int(c), "isthing": 0}
+                     for c in np.unique(semantic[(instance == 0) & (semantic != VOID)])]
+            self.entries.append({"image_id": image_id, "file_name": f"{stamp}.png", "segments_info": info})
+        else:
+            write_png(self.dir / "semantic" / f"{stamp}.png", semantic)
+            self.entries += [{"image_id": image_id, "category_id": int(klass), "score": float(score),
+                              "segmentation": coco.encode(instance == sid)} for sid, klass, score in segments]
+
+    def close(self) -> None:
+        cats = [{"id": c.id, "name": c.name, "isthing": int(c.is_thing)} for c in DEFAULT_CLASSES]
+        if self.fmt == "png_pair":
+            pd.DataFrame(self.scores, columns=["stamp_ns", "segment_id", "class_id", "score"]).to_csv(
+                self.dir / "scores.csv", index=False)
+        elif self.fmt == "coco_panoptic":
+            write_json(self.dir / "panoptic.json", {"annotations": self.entries, "categories": cats})
+        else:
+            write_json(self.dir / "instances.json", self.entries)
+            write_json(self.dir / "images.json", {"images": self.images, "categories": cats})
 
 
 class Ros1BagWriter:

@@ -45,3 +45,17 @@ def test_replace_block_keeps_the_rest_of_the_readme(tmp_path):
 def test_missing_evaluation_is_named_not_invented(tmp_path):
     text = results.build(tmp_path, tmp_path / "bench", "synth_none")
     assert "No evaluation of `synth_none` on disk" in text
+
+
+def test_a_partly_run_family_says_which_rows_its_mean_covers(tmp_path):
+    from bench._row_family import FAMILY
+    first, second = FAMILY[0].name, FAMILY[1].name
+    table = pd.DataFrame({"row": [first, second, "mean", "worst"], "count_error_rel": [0.0, -0.04, -0.02, -0.04]})
+    write_parquet(table, tmp_path / "rows.parquet")
+    text = results.family_section(tmp_path / "rows.parquet")
+    assert f"2 of the family's {len(FAMILY)} rows finished" in text
+    assert FAMILY[2].name in text.split("not yet run:")[1].split(")")[0]
+    assert f"| {second} | -0.04 |" in text
+    whole = pd.DataFrame({"row": [r.name for r in FAMILY] + ["mean"], "count_error_rel": 0.0})
+    write_parquet(whole, tmp_path / "rows.parquet")
+    assert "not yet run" not in results.family_section(tmp_path / "rows.parquet")

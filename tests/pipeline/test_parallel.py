@@ -60,3 +60,37 @@ def test_keep_freed_memory_stops_page_faults_on_every_large_allocation():
     pages = 20 * (2 << 20) // 4096
     assert faults["plain"] > pages // 2
     assert faults["keep"] < pages // 10
+
+
+def name_of_worker(_):
+    return parallel.worker_name()
+
+
+@pytest.mark.slow
+def test_map_tasks_from_several_threads_share_one_cluster(monkeypatch):
+    import threading
+
+    opened = []
+    real = parallel.client_for
+
+    def counting(*args):
+        opened.append(args)
+        return real(*args)
+
+    monkeypatch.setattr(parallel, "client_for", counting)
+    results = {}
+
+    def submit(name):
+        results[name] = parallel.map_tasks(name_of_worker, {"a": 0, "b": 1}, show_progress=False)
+
+    with parallel.shared_cluster(None, 2, 1):
+        threads = [threading.Thread(target=submit, args=(n,)) for n in ("row1", "row2")]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join()
+    assert opened == [(None, 2, 1)]
+    workers = {o.worker for out in results.values() for o in out.values()}
+    assert all(o.error is None and o.result == o.worker for out in results.values() for o in out.values())
+    assert workers <= {"0", "1"} and workers
+    assert parallel.task_threads(0, 4) == max(1, (os.cpu_count() or 1) // 4)  # the block is closed

@@ -1,0 +1,79 @@
+"""The family of synthetic rows that `pag bench rows` judges the pipeline on.
+
+Fixed: the rows were chosen before any setting was tuned on them and are not changed to suit a result (a
+new row gets a new name; an existing row keeps its knobs). They span the knobs a season's rows vary in:
+fruit density 8-40 fruits/m, detector miss rate 0.05-0.35, false positives 0.1-0.6 per frame, merged
+detections 0.02-0.15, odometry drift up to 0.06 m/m and 4 deg/m, and 120-240 frames (1.6-3.2 m of row).
+Every row keeps one labelled frame (one window) per 40 frames, as the default row has. Every other synth
+setting is the `small` preset's default (320x180).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class FamilyRow:
+    name: str
+    """short name; the sequence is synth_rows_<name>."""
+    doc: str
+    """what the row stands for."""
+    seed: int
+    fruits_per_m: float
+    det_miss_rate: float
+    det_false_pos_rate: float
+    det_merge_rate: float
+    odom_drift_m_per_m: float
+    odom_yaw_drift_deg_per_m: float
+    n_frames: int
+
+    @property
+    def n_labelled(self) -> int:
+        return self.n_frames // 40
+
+    def knobs(self) -> dict[str, float]:
+        """The synth settings this row sets (synth.<key>)."""
+        return {"seed": self.seed, "fruits_per_m": self.fruits_per_m, "det_miss_rate": self.det_miss_rate,
+                "det_false_pos_rate": self.det_false_pos_rate, "det_merge_rate": self.det_merge_rate,
+                "odom_drift_m_per_m": self.odom_drift_m_per_m,
+                "odom_yaw_drift_deg_per_m": self.odom_yaw_drift_deg_per_m, "n_frames": self.n_frames,
+                "n_labelled": self.n_labelled}
+
+
+FAMILY: tuple[FamilyRow, ...] = (
+    FamilyRow("typical", "a typical row: the default row's knobs on another seed",
+              seed=101, fruits_per_m=12, det_miss_rate=0.15, det_false_pos_rate=0.3, det_merge_rate=0.05,
+              odom_drift_m_per_m=0.03, odom_yaw_drift_deg_per_m=2.0, n_frames=120),
+    FamilyRow("sparse_clean", "few fruits, a good detector and good odometry: the easy end",
+              seed=102, fruits_per_m=8, det_miss_rate=0.05, det_false_pos_rate=0.1, det_merge_rate=0.02,
+              odom_drift_m_per_m=0.01, odom_yaw_drift_deg_per_m=0.5, n_frames=120),
+    FamilyRow("medium_long", "medium density over a longer row (6 windows)",
+              seed=103, fruits_per_m=16, det_miss_rate=0.10, det_false_pos_rate=0.2, det_merge_rate=0.05,
+              odom_drift_m_per_m=0.02, odom_yaw_drift_deg_per_m=1.5, n_frames=240),
+    FamilyRow("dense", "a dense row with a typical detector",
+              seed=104, fruits_per_m=30, det_miss_rate=0.15, det_false_pos_rate=0.3, det_merge_rate=0.08,
+              odom_drift_m_per_m=0.03, odom_yaw_drift_deg_per_m=2.0, n_frames=180),
+    FamilyRow("densest", "the densest row: 40 fruits/m, 20 % missed, few false positives, many merges",
+              seed=105, fruits_per_m=40, det_miss_rate=0.20, det_false_pos_rate=0.15, det_merge_rate=0.10,
+              odom_drift_m_per_m=0.03, odom_yaw_drift_deg_per_m=2.0, n_frames=160),
+    FamilyRow("poor_detector", "a weak detector: a third of the fruits missed, many false positives and merges",
+              seed=106, fruits_per_m=20, det_miss_rate=0.35, det_false_pos_rate=0.6, det_merge_rate=0.12,
+              odom_drift_m_per_m=0.02, odom_yaw_drift_deg_per_m=1.0, n_frames=120),
+    FamilyRow("bad_odometry", "the worst odometry: 0.06 m/m and 4 deg/m of drift",
+              seed=107, fruits_per_m=16, det_miss_rate=0.15, det_false_pos_rate=0.3, det_merge_rate=0.05,
+              odom_drift_m_per_m=0.06, odom_yaw_drift_deg_per_m=4.0, n_frames=200),
+    FamilyRow("dense_hard", "everything at once: dense, a noisy detector, strong drift, a long row",
+              seed=108, fruits_per_m=35, det_miss_rate=0.25, det_false_pos_rate=0.45, det_merge_rate=0.15,
+              odom_drift_m_per_m=0.05, odom_yaw_drift_deg_per_m=3.0, n_frames=240),
+)
+"""The family, in a fixed order."""
+
+QUICK: tuple[str, ...] = ("typical", "dense", "poor_detector", "bad_odometry")
+"""Rows of the `--quick` smoke run (with tiny images, few frames and few steps)."""
+
+
+def family_row(name: str) -> FamilyRow:
+    for r in FAMILY:
+        if r.name == name:
+            return r
+    raise ValueError(f"no row {name!r} in the family; rows: {[r.name for r in FAMILY]}")

@@ -1,0 +1,140 @@
+"""The whole pipeline on a fixed family of synthetic rows (bench/_row_family.py): count, identity, panoptic
+and size errors, PSNR and cost per row, with the mean and the worst row.
+
+    pag bench rows [--rows NAME,NAME] [--quick] [--force] [--data-root data] [--out data/bench]
+
+Each row is the sequence synth_rows_<name> under --data-root (the normal pipeline outputs, report included).
+Checkpointed: a finished row's results are kept in <out>/rows/<name>.json and the row is skipped on a rerun
+(--force reruns it); a row stopped half-way resumes at the stage it stopped in. The table is rebuilt from
+every finished row each time. `--quick` runs 4 rows with tiny images and few steps (a smoke test of the
+harness; its numbers mean nothing) into rows_quick.* and sequences synth_rowsq_<name>.
+Writes <out>/rows.parquet (one row per family row, then 'mean' and 'worst') and <out>/rows.png.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from bench._common import write_parquet
+from bench._pipeline import QUALITY, TINY, run_variant, settings
+from bench._row_family import FAMILY, QUICK, family_row
+from pipeline.io import atomic_write_bytes
+
+LOWER_IS_BETTER = {"diameter_median_err_m", "minutes", "peak_rss_mb"}
+"""Columns whose worst value is the largest; count_error_rel's worst is the largest magnitude; for the other
+quality columns the worst is the smallest."""
+
+
+def row_settings(name: str, quick: bool) -> list[str]:
+    knobs = {f"synth.{k}": v for k, v in family_row(name).knobs().items()}
+    if quick:
+        knobs.update(TINY)
+        knobs.update({"synth.n_frames": 14, "synth.n_labelled": 2})
+    return settings(knobs)
+
+
+def run_row(name: str, quick: bool, data_root: Path, force: bool) -> dict:
+    seq = f"synth_rows{'q' if quick else ''}_{name}"
+    run = run_variant(seq, row_settings(name, quick), data_root, force=force)
+    rec = {"row": name, **family_row(name).knobs(), **run.quality, "minutes": run.stage_minutes(),
+           "peak_rss_mb": run.peak_rss_mb(), "seq": seq}
+    if quick:
+        rec.update(n_frames=14, n_labelled=2)
+    return rec
+
+
+def summarise(rows: pd.DataFrame) -> pd.DataFrame:
+    """The rows, then a 'mean' row and a 'worst' row of every quality and cost column."""
+    cols = [*QUALITY, "minutes", "peak_rss_mb"]
+    mean = {"row": "mean", **{c: float(rows[c].mean()) for c in cols}}
+    worst = {"row": "worst"}
+    for c in cols:
+        v = rows[c].dropna()
+        if v.empty:
+            worst[c] = float("nan")
+        elif c == "count_error_rel":
+            worst[c] = float(v.iloc[int(np.argmax(np.abs(v.to_numpy())))])
+        else:
+            worst[c] = float(v.max() if c in LOWER_IS_BETTER else v.min())
+    return pd.concat([rows, pd.DataFrame([mean, worst])], ignore_index=True)
+
+
+def plot(df: pd.DataFrame, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rows = df[~df.row.isin(["mean", "worst"])]
+    panels = [("count_error_rel", "count error (rel.)"), ("recall", "recall"), ("precision", "precision"),
+              ("row_id_consistency", "row ID consistency"), ("pq", "PQ (bars) / detector PQ (dots)"),
+              ("diameter_median_err_m", "median diameter error (m)"), ("psnr_db", "val PSNR (dB)"),
+              ("minutes", "minutes")]
+    fig, axes = plt.subplots(2, 4, figsize=(14, 6))
+    x = np.arange(len(rows))
+    for ax, (col, title) in zip(axes.ravel(), panels):
+        ax.bar(x, rows[col].to_numpy(np.float64), color="#48c")
+        if col == "pq":
+            ax.plot(x, rows["pq_detector"].to_numpy(np.float64), "o", color="#c44")
+        mean = df.loc[df.row == "mean", col]
+        if len(mean) and np.isfinite(mean.iloc[0]):
+            ax.axhline(float(mean.iloc[0]), color="#444", lw=0.8, ls="--")
+        ax.set_title(title, fontsize=9)
+        ax.set_xticks(x, rows.row, rotation=60, fontsize=7)
+    fig.suptitle("pag bench rows (dashed: mean over rows)", fontsize=10)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def run(names: list[str], quick: bool = False, force: bool = False, data_root: Path = Path("data"),
+        out_dir: Path = Path("data/bench")) -> pd.DataFrame:
+    tag = "rows_quick" if quick else "rows"
+    done_dir = out_dir / tag
+    done_dir.mkdir(parents=True, exist_ok=True)
+    for name in names:
+        done = done_dir / f"{name}.json"
+        if done.is_file() and not force:
+            print(f"[bench rows] {name}: done before, skipped ({done})", file=sys.stderr)
+            continue
+        print(f"[bench rows] {name}: running", file=sys.stderr)
+        rec = run_row(name, quick, data_root, force)
+        atomic_write_bytes(done, json.dumps(rec, indent=1).encode())
+        print(f"[bench rows] {name}: {rec['minutes']:.1f} min, count error {rec['count_error_rel']:+.3f}, "
+              f"PQ {rec['pq']:.3f}", file=sys.stderr)
+    order = [r.name for r in FAMILY]
+    recs = [json.loads(p.read_text()) for p in done_dir.glob("*.json")]
+    recs.sort(key=lambda r: order.index(r["row"]) if r["row"] in order else len(order))
+    df = summarise(pd.DataFrame(recs))
+    write_parquet(df, out_dir / f"{tag}.parquet")
+    plot(df, out_dir / f"{tag}.png")
+    return df
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="pag bench rows", description=__doc__.split("\n")[0])
+    p.add_argument("--rows", default="", help=f"comma-separated subset of {[r.name for r in FAMILY]} (default: all)")
+    p.add_argument("--quick", action="store_true", help=f"the 4-row smoke run {list(QUICK)} with tiny settings")
+    p.add_argument("--force", action="store_true", help="rerun rows (and their stages) that are done")
+    p.add_argument("--data-root", type=Path, default=Path("data"))
+    p.add_argument("--out", type=Path, default=Path("data/bench"))
+    a = p.parse_args(argv)
+    names = [n.strip() for n in a.rows.split(",") if n.strip()] or (list(QUICK) if a.quick else [r.name for r in FAMILY])
+    for n in names:
+        family_row(n)  # unknown names fail before anything runs
+    df = run(names, a.quick, a.force, a.data_root, a.out)
+    cols = ["row", "count_error_rel", "recall", "precision", "row_id_consistency", "pq", "pq_detector", "psnr_db",
+            "minutes"]
+    print(df[cols].to_string(index=False, float_format=lambda v: f"{v:.3f}"))
+    print(f"wrote {a.out / ('rows_quick' if a.quick else 'rows')}.parquet and .png")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

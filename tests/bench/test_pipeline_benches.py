@@ -1,0 +1,91 @@
+"""pag bench rows / scale: the family, the shared variant runner (one real tiny row through every stage),
+checkpointing, the summary rows and the growth exponents."""
+import json
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from bench import _pipeline, rows, scale
+from bench._row_family import FAMILY, QUICK, family_row
+
+
+def test_family_spans_the_required_knobs():
+    assert len(FAMILY) >= 8 and len({r.name for r in FAMILY}) == len(FAMILY)
+    assert len({r.seed for r in FAMILY}) == len(FAMILY)
+    dens = [r.fruits_per_m for r in FAMILY]
+    assert min(dens) == 8 and max(dens) == 40
+    assert min(r.det_miss_rate for r in FAMILY) <= 0.05 and max(r.det_miss_rate for r in FAMILY) >= 0.35
+    assert min(r.det_false_pos_rate for r in FAMILY) <= 0.1 and max(r.det_false_pos_rate for r in FAMILY) >= 0.6
+    assert max(r.odom_drift_m_per_m for r in FAMILY) == 0.06 and max(r.odom_yaw_drift_deg_per_m for r in FAMILY) == 4
+    assert {min(r.n_frames for r in FAMILY), max(r.n_frames for r in FAMILY)} == {120, 240}
+    assert len(QUICK) == 4 and all(family_row(n) for n in QUICK)
+    with pytest.raises(ValueError, match="no row 'nope' in the family; rows:"):
+        family_row("nope")
+
+
+def test_growth_exponent():
+    assert _pipeline.growth_exponent(np.array([60, 120, 240]), np.array([2.0, 4.0, 8.0])) == pytest.approx(1.0)
+    assert _pipeline.growth_exponent(np.array([1, 2, 4]), np.array([1.0, 4.0, 16.0])) == pytest.approx(2.0)
+    assert np.isnan(_pipeline.growth_exponent(np.array([5, 5]), np.array([1.0, 2.0])))
+
+
+def test_summary_rows_take_the_worst_in_the_right_direction():
+    df = pd.DataFrame([{"row": "a", "count_error_rel": -0.10, "recall": 0.9, "diameter_median_err_m": 0.002,
+                        "minutes": 3.0, "peak_rss_mb": 100.0},
+                       {"row": "b", "count_error_rel": 0.05, "recall": 0.8, "diameter_median_err_m": 0.004,
+                        "minutes": 1.0, "peak_rss_mb": 300.0}])
+    for c in _pipeline.QUALITY:
+        if c not in df:
+            df[c] = np.nan
+    out = rows.summarise(df).set_index("row")
+    assert out.loc["mean", "recall"] == pytest.approx(0.85)
+    assert out.loc["worst", "count_error_rel"] == -0.10 and out.loc["worst", "recall"] == 0.8
+    assert out.loc["worst", "diameter_median_err_m"] == 0.004 and out.loc["worst", "minutes"] == 3.0
+    assert np.isnan(out.loc["worst", "pq"])
+
+
+def test_rows_quick_runs_the_pipeline_and_is_checkpointed(tmp_path, capsys):
+    data, out = tmp_path / "data", tmp_path / "bench"
+    assert rows.main(["--quick", "--rows", "dense", "--data-root", str(data), "--out", str(out)]) == 0
+    df = pd.read_parquet(out / "rows_quick.parquet")
+    assert list(df.row) == ["dense", "mean", "worst"]
+    r = df.iloc[0]
+    assert r.fruits_per_m == family_row("dense").fruits_per_m and r.n_frames == 14
+    assert r.count_gt > 0 and np.isfinite(r.count_error_rel) and np.isfinite(r.psnr_db) and np.isfinite(r.pq_detector)
+    assert r.minutes > 0 and r.peak_rss_mb > 50
+    manifest = json.loads((data / "interim" / "synth_rowsq_dense" / "_manifest" / "nerf_fit.json").read_text())
+    assert manifest["peak_rss_mb"] > 0
+    assert (out / "rows_quick.png").is_file()
+    capsys.readouterr()
+    assert rows.main(["--quick", "--rows", "dense", "--data-root", str(data), "--out", str(out)]) == 0
+    assert "dense: done before, skipped" in capsys.readouterr().err
+    with pytest.raises(ValueError, match="no row 'nope'"):
+        rows.main(["--quick", "--rows", "nope", "--out", str(out)])
+
+
+def test_scale_sweeps_tables_and_exponents(tmp_path, monkeypatch):
+    """The scale harness around a stand-in variant runner whose costs grow as frames^1 and pixels^0.5."""
+    calls = []
+
+    def fake_run_variant(seq, overrides, data_root, force=False):
+        knobs = dict(o.split("=", 1) for o in overrides)
+        n, w, h = int(knobs["synth.n_frames"]), int(knobs["synth.width"]), int(knobs["synth.height"])
+        calls.append(seq)
+        stages = pd.DataFrame({"stage": ["synth", "nerf_fit"], "seconds": [0.1 * n, 0.01 * n * (w * h) ** 0.5],
+                               "peak_rss_mb": [100.0, 100.0]})
+        return _pipeline.VariantRun(seq, 1.0, stages, {c: 0.5 for c in _pipeline.QUALITY})
+
+    monkeypatch.setattr(scale, "run_variant", fake_run_variant)
+    df, ex = scale.run([10, 20, 40], [(48, 32), (96, 64)], quick=True, data_root=tmp_path, out_dir=tmp_path)
+    assert len(set(calls)) == 4  # the shared point (10 frames, 48x32) is one sequence
+    e = ex.set_index(["sweep", "stage"])
+    assert e.loc[("frames", "synth"), "time_exponent"] == pytest.approx(1.0)
+    assert e.loc[("pixels", "nerf_fit"), "time_exponent"] == pytest.approx(0.5)
+    assert e.loc[("pixels", "synth"), "time_exponent"] == pytest.approx(0.0, abs=1e-9)
+    assert e.loc[("frames", "nerf_fit"), "memory_exponent"] == pytest.approx(0.0, abs=1e-9)
+    assert set(df.columns) >= {"sweep", "n_frames", "pixels", "stage", "seconds", "peak_rss_mb", "pq", "psnr_db"}
+    for name in ("scale_quick.parquet", "scale_quick_exponents.parquet", "scale_quick.png"):
+        assert (tmp_path / name).is_file()
+    with pytest.raises(ValueError, match="expected WxH"):
+        scale.parse_sizes("320x180,big")
