@@ -100,6 +100,18 @@ def family_section(path: Path) -> str:
     return head + ":\n\n" + markdown(show)
 
 
+def count_rules_section(path: Path) -> str:
+    """`pag bench count_rules`: per row the counted fruits with every rule and with each rule off, then the
+    verdict per rule."""
+    df = pd.read_parquet(path)
+    runs = df[df.seq != ""][["seq", "variant", "count_pred", "count_gt", "count_error_rel", "recall", "precision",
+                             "f1"]]
+    verdict = df[df.seq == ""][["rule", "helps", "hurts", "verdict"]]
+    return (f"Counting rules (`pag bench count_rules`), commit `{table_commit(path)}`: each rule of fruit_count "
+            f"switched off on finished rows (a rule helps a row when its F1 falls with the rule off):\n\n"
+            + markdown(runs) + "\n\n" + markdown(verdict))
+
+
 def encoding_section(path: Path) -> str:
     df = pd.read_parquet(path)
     fused = df[df.variant == "permuto_fused"]
@@ -140,6 +152,8 @@ def build(data_root: Path, bench_dir: Path, seq: str, extra: list[str] = ()) -> 
     parts = []
     if (bench_dir / "rows.parquet").is_file():
         parts.append(family_section(bench_dir / "rows.parquet"))
+    if (bench_dir / "count_rules.parquet").is_file():
+        parts.append(count_rules_section(bench_dir / "count_rules.parquet"))
     parts.append(default_row_section(data_root, seq))
     missing = []
     for name in ["encoding", "render", "dask", *extra]:

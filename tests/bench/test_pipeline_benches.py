@@ -1,12 +1,12 @@
-"""pag bench rows / scale: the family, the shared variant runner (one real tiny row through every stage),
-checkpointing, the summary rows and the growth exponents."""
+"""pag bench rows / scale / count_rules: the family, the shared variant runner (one real tiny row through
+every stage), checkpointing, the summary rows, the growth exponents and the counting-rule check."""
 import json
 
 import numpy as np
 import pandas as pd
 import pytest
 
-from bench import _pipeline, rows, scale
+from bench import _pipeline, count_rules, rows, scale
 from bench._row_family import FAMILY, QUICK, family_row
 
 
@@ -62,6 +62,41 @@ def test_rows_quick_runs_the_pipeline_and_is_checkpointed(tmp_path, capsys):
     assert "dense: done before, skipped" in capsys.readouterr().err
     with pytest.raises(ValueError, match="no row 'nope'"):
         rows.main(["--quick", "--rows", "nope", "--out", str(out)])
+
+    # the counting rules, checked on the finished row: fruit_count and evaluate rerun in memory
+    before = {p: p.stat().st_mtime_ns for p in (data / "processed" / "synth_rowsq_dense").glob("*.parquet")}
+    assert count_rules.main(["--quick", "--data-root", str(data), "--out", str(out)]) == 0  # finished rows
+    cr = pd.read_parquet(out / "count_rules_quick.parquet")
+    runs = cr[cr.seq == "synth_rowsq_dense"].set_index("variant")
+    assert list(runs.index) == ["all rules", *(f"{k} off" for k in count_rules.RULES_OFF)]
+    base = runs.loc["all rules"]
+    for col in ("count_pred", "count_gt", "recall", "precision"):  # the same scores as the pipeline's own run
+        assert base[col] == pytest.approx(r[col], nan_ok=True)
+    assert (runs.count_pred >= base.count_pred).all()  # a rule switched off never counts fewer fruits
+    verdict = cr[cr.seq == ""].set_index("rule")
+    for rule in count_rules.RULES_OFF:
+        delta = runs.loc[f"{rule} off", "f1"] - base.f1
+        expect = "keep" if delta < 0 else "drop" if delta > 0 else "no effect"
+        assert verdict.loc[rule, "verdict"] == expect or not np.isfinite(delta)
+    assert before == {p: p.stat().st_mtime_ns for p in before}  # the row's own tables untouched
+    with pytest.raises(ValueError, match="no rows to check"):
+        count_rules.main(["--data-root", str(data), "--out", str(out)])  # the full family has not run here
+    with pytest.raises(FileNotFoundError, match="run `pag all --seq synth_none`"):
+        count_rules.main(["--seqs", "synth_none", "--data-root", str(data), "--out", str(out)])
+
+
+def test_count_rule_verdicts_weigh_every_row():
+    f1 = {("a", "all rules"): 0.9, ("b", "all rules"): 0.8,
+          ("a", "fragments off"): 0.85, ("b", "fragments off"): 0.85,    # helps a, hurts b: mixed
+          ("a", "unconfirmed off"): 0.88, ("b", "unconfirmed off"): 0.8,  # helps a only: keep
+          ("a", "far_row off"): 0.9, ("b", "far_row off"): 0.8}           # changes nothing
+    df = pd.DataFrame([{"seq": s, "variant": v, "f1": x} for (s, v), x in f1.items()])
+    v = count_rules.verdicts(df).set_index("rule")
+    assert v.loc["fragments", "verdict"] == "mixed" and v.loc["fragments", "helps"] == "a"
+    assert v.loc["fragments", "hurts"] == "b"
+    assert v.loc["unconfirmed", "verdict"] == "keep" and v.loc["far_row", "verdict"] == "no effect"
+    df.loc[(df.seq == "b") & (df.variant == "far_row off"), "f1"] = 0.81
+    assert count_rules.verdicts(df).set_index("rule").loc["far_row", "verdict"] == "drop"
 
 
 def test_scale_sweeps_tables_and_exponents(tmp_path, monkeypatch):

@@ -59,3 +59,17 @@ def test_a_partly_run_family_says_which_rows_its_mean_covers(tmp_path):
     whole = pd.DataFrame({"row": [r.name for r in FAMILY] + ["mean"], "count_error_rel": 0.0})
     write_parquet(whole, tmp_path / "rows.parquet")
     assert "not yet run" not in results.family_section(tmp_path / "rows.parquet")
+
+
+def test_count_rules_section_lists_each_row_and_each_verdict(tmp_path):
+    runs = pd.DataFrame({"seq": ["synth_a", "synth_a", ""], "variant": ["all rules", "far_row off", "far_row off"],
+                         "rule": ["all rules", "far_row", "far_row"], "count_pred": [10.0, 12.0, None],
+                         "count_gt": [10.0, 10.0, None], "count_error_rel": [0.0, 0.2, None],
+                         "recall": [1.0, 1.0, None], "precision": [1.0, 0.833, None], "f1": [1.0, 0.909, None],
+                         "helps": [None, None, "synth_a"], "hurts": [None, None, ""], "verdict": [None, None, "keep"]})
+    write_parquet(runs, tmp_path / "count_rules.parquet")
+    text = results.count_rules_section(tmp_path / "count_rules.parquet")
+    assert "| synth_a | far_row off | 12 | 10 | 0.2 | 1 | 0.833 | 0.909 |" in text
+    assert "| far_row | synth_a |  | keep |" in text
+    _row(tmp_path)
+    assert "`pag bench count_rules`" in results.build(tmp_path, tmp_path, "synth_x")
