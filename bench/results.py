@@ -112,6 +112,23 @@ def count_rules_section(path: Path) -> str:
             + markdown(runs) + "\n\n" + markdown(verdict))
 
 
+def scale_section(path: Path) -> str:
+    """`pag bench scale`: the variants measured (whole-row cost and quality), then the growth exponents."""
+    df = pd.read_parquet(path)
+    keys = ["sweep", "n_frames", "width", "height", "n_windows"]
+    per = df.groupby(keys, sort=False).agg(minutes=("seconds", lambda v: v.sum() / 60),
+                                           peak_rss_mb=("peak_rss_mb", "max"), psnr_db=("psnr_db", "first"),
+                                           pq=("pq", "first"), count_error_rel=("count_error_rel", "first"))
+    out = [f"Scale (`pag bench scale`), commit `{table_commit(path)}`; minutes = sum of the stages' wall times, "
+           f"peak memory of the process tree (Dask workers included):", "", markdown(per.reset_index())]
+    ex_path = path.with_name(path.stem + "_exponents.parquet")
+    if ex_path.is_file():
+        ex = pd.read_parquet(ex_path)
+        out += ["", "Growth exponents per stage (log-log slope of wall time and peak memory against frames or "
+                "pixels; 1 = linear; stages of a few seconds are dominated by fixed costs):", "", markdown(ex)]
+    return "\n".join(out)
+
+
 def encoding_section(path: Path) -> str:
     df = pd.read_parquet(path)
     fused = df[df.variant == "permuto_fused"]
@@ -154,6 +171,8 @@ def build(data_root: Path, bench_dir: Path, seq: str, extra: list[str] = ()) -> 
         parts.append(family_section(bench_dir / "rows.parquet"))
     if (bench_dir / "count_rules.parquet").is_file():
         parts.append(count_rules_section(bench_dir / "count_rules.parquet"))
+    if (bench_dir / "scale.parquet").is_file():
+        parts.append(scale_section(bench_dir / "scale.parquet"))
     parts.append(default_row_section(data_root, seq))
     missing = []
     for name in ["encoding", "render", "dask", *extra]:

@@ -73,3 +73,17 @@ def test_count_rules_section_lists_each_row_and_each_verdict(tmp_path):
     assert "| far_row | synth_a |  | keep |" in text
     _row(tmp_path)
     assert "`pag bench count_rules`" in results.build(tmp_path, tmp_path, "synth_x")
+
+
+def test_scale_section_sums_each_variant_and_shows_the_exponents(tmp_path):
+    base = {"sweep": "frames", "seq": "synth_scale_40f_320x180", "n_frames": 40, "width": 320, "height": 180,
+            "n_windows": 1, "psnr_db": 29.1, "pq": 0.92, "count_error_rel": -0.05}
+    table = pd.DataFrame([{**base, "stage": "synth", "seconds": 30.0, "peak_rss_mb": 500.0},
+                          {**base, "stage": "nerf_fit", "seconds": 210.0, "peak_rss_mb": 2000.0}])
+    write_parquet(table, tmp_path / "scale.parquet")
+    write_parquet(pd.DataFrame({"sweep": ["frames"], "stage": ["nerf_fit"], "time_exponent": [0.75],
+                                "memory_exponent": [0.5], "seconds_max": [210.0], "peak_rss_mb_max": [2000.0]}),
+                  tmp_path / "scale_exponents.parquet")
+    text = results.scale_section(tmp_path / "scale.parquet")
+    assert "| frames | 40 | 320 | 180 | 1 | 4 | 2e+03 | 29.1 | 0.92 | -0.05 |" in text  # 240 s = 4 min
+    assert "| frames | nerf_fit | 0.75 | 0.5 | 210 | 2e+03 |" in text
