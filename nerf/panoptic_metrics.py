@@ -171,3 +171,30 @@ def id_consistency(per_frame: list[dict[int, int]], min_frames: int = 3) -> tupl
         return float("nan"), 0
     ok = sum(1 for f in scored if len(set(seen[f])) == 1 and seen[f][0] != 0 and owners[seen[f][0]] == {f})
     return ok / len(scored), len(scored)
+
+
+def id_failures(per_frame: list[dict[int, int]], min_frames: int = 3) -> dict[str, int]:
+    """Why the fruits that `id_consistency` scores fail it, as counts of fruits per kind (a fruit can fail in
+    several ways): 'unlabelled' = in some frame no predicted id covers most of it (missed, split inside the
+    frame, or painted as stuff); 'split' = it carries two or more non-zero ids over its frames; 'shared' = an
+    id it carries is another fruit's in some frame; 'one_frame' = it would pass without one of its frames
+    (every other frame carries one id that no other fruit carries). Input as for `id_consistency`."""
+    seen: dict[int, list[int]] = {}
+    owners: dict[int, set[int]] = {}
+    for frame in per_frame:
+        for f, p in frame.items():
+            seen.setdefault(f, []).append(p)
+            if p:
+                owners.setdefault(p, set()).add(f)
+    out = {"unlabelled": 0, "split": 0, "shared": 0, "one_frame": 0}
+    for f, ps in seen.items():
+        nonzero = set(ps) - {0}
+        if len(ps) < min_frames or (len(set(ps)) == 1 and ps[0] != 0 and owners[ps[0]] == {f}):
+            continue
+        out["unlabelled"] += 0 in ps
+        out["split"] += len(nonzero) > 1
+        out["shared"] += any(owners[p] != {f} for p in nonzero)
+        counts = {p: ps.count(p) for p in set(ps)}
+        top = max(counts, key=counts.get)
+        out["one_frame"] += bool(top and counts[top] == len(ps) - 1 and owners[top] == {f})
+    return out

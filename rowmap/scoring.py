@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from nerf.panoptic_metrics import ConfusionAccumulator, PanopticAccumulator, dominant_ids, id_consistency
+from nerf.panoptic_metrics import ConfusionAccumulator, PanopticAccumulator, dominant_ids, id_consistency, id_failures
 from pipeline.classes import DEFAULT_CLASSES, N_CLASSES, THING_IDS
 
 STUFF_IDS = tuple(c.id for c in DEFAULT_CLASSES if not c.is_thing)
@@ -42,4 +42,5 @@ class PanopticScore:
         if not suffix:
             share, n = id_consistency(self.ids, min_frames)
             out.update(id_consistency=share, id_consistency_n_fruits=float(n))
+            out.update({f"id_fail_{k}": float(v) for k, v in id_failures(self.ids, min_frames).items()})
         return out

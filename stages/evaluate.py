@@ -26,7 +26,8 @@ QUAT_COLS = ["qx", "qy", "qz", "qw"]
 UNITS = {"psnr": "dB", "ate_odometry_m": "m", "ate_refined_m": "m", "rot_error_refined_deg": "deg",
          "rot_error_odometry_deg": "deg", "count_gt": "fruits", "count_pred": "fruits",
          "count_gt_near_row_all": "fruits", "fruits_matched": "fruits",
-         "fruits_matched_unaligned": "fruits", "id_consistency_n_fruits": "fruits",
+         "fruits_matched_unaligned": "fruits", "id_consistency_n_fruits": "fruits", "id_fail_unlabelled": "fruits",
+         "id_fail_split": "fruits", "id_fail_shared": "fruits", "id_fail_one_frame": "fruits",
          "n_frames": "frames", "n_frames_detector": "frames"}
 
 

@@ -4,7 +4,8 @@ import torch
 from torchmetrics.classification import MulticlassJaccardIndex
 from torchmetrics.detection import PanopticQuality
 
-from nerf.panoptic_metrics import ConfusionAccumulator, PanopticAccumulator, dominant_ids, id_consistency
+from nerf.panoptic_metrics import (ConfusionAccumulator, PanopticAccumulator, dominant_ids, id_consistency,
+                                  id_failures)
 
 # torchmetrics' documented PanopticQuality example: PQ = 0.5463.
 PRED = np.array([[[6, 0], [0, 0], [6, 0], [6, 0]], [[0, 0], [0, 0], [6, 0], [0, 1]],
@@ -107,6 +108,17 @@ def test_id_consistency_requires_one_unique_id_per_fruit():
     share, n = id_consistency(frames[:2], min_frames=2)
     assert share == 1.0
     assert id_consistency(frames[:2], min_frames=3) == (pytest.approx(float("nan"), nan_ok=True), 0)
+
+
+def test_id_failures_name_why_each_fruit_fails():
+    # fruit 1: id 5 in every frame but one, where fruit 2 paints it with 6 (fails on one frame, shares 6)
+    # fruit 2: id 6 throughout (fails: fruit 1 carries 6 once); fruit 3: unlabelled in one frame, else 7
+    # fruit 4: two ids, 8 and 9, half and half (split); fruit 5: 10 throughout (passes)
+    frames = [{1: 5, 2: 6, 3: 7, 4: 8, 5: 10}, {1: 5, 2: 6, 3: 0, 4: 8, 5: 10},
+              {1: 6, 2: 6, 3: 7, 4: 9, 5: 10}, {1: 5, 2: 6, 3: 7, 4: 9, 5: 10}]
+    assert id_consistency(frames) == (pytest.approx(0.2), 5)
+    assert id_failures(frames) == {"unlabelled": 1, "split": 2, "shared": 2, "one_frame": 2}
+    assert id_failures(frames, min_frames=5) == {"unlabelled": 0, "split": 0, "shared": 0, "one_frame": 0}
 
 
 def test_fruits_below_the_visible_size_are_not_scored_in_that_frame():
