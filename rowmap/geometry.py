@@ -1,9 +1,12 @@
 """Fruit geometry across windows: the row frame the windows are brought into, the centre of a fruit from
-its seen surface, and an even subsample of points."""
+its seen surface, groups of 3D points apart from each other, and an even subsample of points."""
 from __future__ import annotations
 
 import numpy as np
 import pandas as pd
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
 
 from nerf.geometry import align_similarity, pose_matrix, similarity_matrix
 from nerf.surfaces import fit_sphere, plausible_fit, principal_extents, robust_centre
@@ -55,3 +58,29 @@ def surface_centre(points: np.ndarray, max_radius_m: float, min_points: int = 20
 def subsample(n: int, cap: int) -> np.ndarray:
     """Evenly spaced indices of at most `cap` of n items (deterministic). Example: subsample(5, 3) -> [0, 2, 4]."""
     return np.arange(n) if n <= cap else np.round(np.linspace(0, n - 1, cap)).astype(np.int64)
+
+
+def point_groups(points: np.ndarray, gap_m: float, min_size: int, max_groups: int, cap: int = 400) -> np.ndarray:
+    """Labels [N] of the groups 3D points [N, 3] form when points closer than gap_m are linked (single
+    linkage), largest group 0, then by size. Groups of fewer than min_size points join group 0, and so do
+    groups past the first max_groups. Linkage runs on an even subsample of at most `cap` points; every
+    point takes the group of its nearest subsampled point. gap_m <= 0 or fewer than 2 * min_size points:
+    all zeros."""
+    n = len(points)
+    if gap_m <= 0 or n < 2 * min_size:
+        return np.zeros(n, np.int64)
+    sub = points[subsample(n, cap)]
+    tree = cKDTree(sub)
+    pairs = tree.query_pairs(gap_m, output_type="ndarray")
+    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(sub), len(sub)))
+    k, lab = connected_components(graph, directed=False)
+    if k == 1:
+        return np.zeros(n, np.int64)
+    lab = lab[tree.query(points)[1]] if len(sub) < n else lab
+    sizes = np.bincount(lab, minlength=k)
+    rank = np.empty(k, np.int64)
+    rank[np.argsort(-sizes, kind="stable")] = np.arange(k)
+    lab = rank[lab]
+    keep = (np.bincount(lab, minlength=k) >= min_size) & (np.arange(k) < max_groups)
+    keep[0] = True
+    return np.where(keep[lab], np.cumsum(keep)[lab] - 1, 0)

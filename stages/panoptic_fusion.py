@@ -15,10 +15,12 @@ from nerf.surfaces import robust_centre, unproject
 from pipeline.classes import THING_IDS, VOID
 from pipeline.images import ImageError, write_png
 from pipeline.stage import StageContext
-from rowmap.geometry import POSE_COLS, subsample, surface_centre, window_alignments
+from rowmap.geometry import POSE_COLS, point_groups, subsample, surface_centre, window_alignments
 from rowmap.renders import PANOPTIC_KINDS, Renders
 
 INPUTS = ("frames", "windows", "window_poses", "window_metrics", "nerf", "renders")
+MAX_GROUPS = 256
+"""groups a slot's pixels can split into in one frame (further groups stay with the largest)."""
 OUTPUTS = ("panoptic_frames", "panoptic", "fruit_slots")
 
 
@@ -43,14 +45,26 @@ class Config:
     """IoU in [0, 1]: on frames both windows rendered, the two slots' masks must overlap at least this much
     (pooled over those frames); slots neither window shows there are matched on distance alone. Raise it
     when touching fruits get merged, lower it when one fruit keeps two ids across windows."""
+    group_gap_m: float = 0.03
+    """metres, >= 0. In each rendered frame, a slot's pixels are un-projected (rendered depth) and split into
+    groups wherever their 3D points lie farther apart than this gap: the NeRF sometimes paints one slot over
+    two fruits in a frame (a fruit and one behind or beside it). Each group is then placed on its own
+    (split_distance_m below): a group on another fruit's surface joins the part of the slot that sees that
+    fruit in other frames, or becomes a part of its own. 0 = a slot's pixels in a frame stay one group.
+    Keep it above the rendered depth's noise on one surface (about 1 cm) and below the gaps that separate
+    neighbouring fruits."""
+    min_group_px: int = 50
+    """pixels of the frame, >= 1: a group smaller than this stays with the slot's largest group in that frame
+    (stray boundary pixels whose rendered depth falls on what lies behind them). Scale it with the image
+    area."""
     split_distance_m: float = 0.08
-    """metres, >= 0. A slot whose per-frame centres form clusters farther apart than this inside one window is
-    split into several fruits (the NeRF gave one slot to two fruits at opposite ends of the frustum); 0 =
+    """metres, >= 0. A slot whose per-frame pixel groups (group_gap_m) have centres in clusters farther apart
+    than this inside one window is split into several fruits (the NeRF gave one slot to two fruits); 0 =
     never split. About one fruit diameter; lower it for small fruits."""
     min_split_frames: int = 2
-    """frames, >= 1. A split-off cluster becomes a fruit of its own only if it holds at least this many frames;
-    a single frame's stray centre (a sliver at the image border, un-projected onto what lies behind it)
-    rejoins the slot's main cluster. 1 = every cluster is a fruit."""
+    """frames, >= 1. A split-off cluster becomes a fruit of its own only if it holds at least this many
+    per-frame groups; a single frame's stray centre (a sliver at the image border, un-projected onto what
+    lies behind it) rejoins the slot's main cluster. 1 = every cluster is a fruit."""
     centre: Literal["sphere", "median"] = "sphere"
     """a slot's 3D centre for the association: 'sphere' = centre of a sphere fitted to its seen surface
     (median where no plausible fit), 'median' = median of the seen surface points (biased towards the
@@ -85,6 +99,9 @@ class Config:
         if self.split_distance_m < 0 or self.min_slot_px < 1 or self.max_points_per_view < 1 or self.min_split_frames < 1:
             raise ValueError("panoptic_fusion: split_distance_m must be >= 0, min_slot_px, max_points_per_view and "
                              "min_split_frames >= 1")
+        if self.group_gap_m < 0 or self.min_group_px < 1:
+            raise ValueError(f"panoptic_fusion: group_gap_m must be >= 0 and min_group_px >= 1, got "
+                             f"{self.group_gap_m}, {self.min_group_px}")
 
 
 def window_views(windows: pd.DataFrame, window_poses: pd.DataFrame, window_metrics: pd.DataFrame,
@@ -128,9 +145,14 @@ def read_render(renders: Renders, wid: int, fid: int, shape: tuple[int, int]) ->
 
 # -- fusion ----------------------------------------------------------------------------------------------
 
+def code(slot: int, group: int) -> int:
+    """One number for a slot's pixel group in a frame (the masks of frames several windows rendered)."""
+    return slot * MAX_GROUPS + group
+
+
 @dataclass
 class SlotView:
-    """One slot of one window in one rendered frame."""
+    """One pixel group of one slot of one window in one rendered frame."""
 
     n_px: int
     class_px: np.ndarray       # [N_CLASSES + 1] pixel counts per thing/stuff class
@@ -144,7 +166,8 @@ class LocalFruit:
     window_id: int
     slot: int
     part: int
-    frames: list[int]
+    frames: list[tuple[int, int]]
+    """(frame_id, group) of the slot's per-frame pixel groups that make this part."""
     n_px: int
     class_id: int
     centre: np.ndarray | None
@@ -155,9 +178,9 @@ class LocalFruit:
     members: list[int] = field(default_factory=list)
 
 
-def split_frames(frame_centres: dict[int, np.ndarray], dist_m: float, min_frames: int = 1) -> list[list[int]]:
-    """Single-linkage clusters of a slot's per-frame centres (frames without a centre join the largest, and
-    so do clusters of fewer than `min_frames` frames)."""
+def split_frames(frame_centres: dict, dist_m: float, min_frames: int = 1) -> list[list]:
+    """Single-linkage clusters of a slot's per-frame centres, keyed by frame or by (frame, group) (keys
+    without a centre join the largest cluster, and so do clusters of fewer than `min_frames` keys)."""
     fids = [f for f, c in frame_centres.items() if c is not None]
     rest = [f for f, c in frame_centres.items() if c is None]
     if dist_m <= 0 or len(fids) < 2:
@@ -193,8 +216,7 @@ def centre_distance(a: LocalFruit, b: LocalFruit) -> float:
     return d
 
 
-def pair_cost(a: LocalFruit, b: LocalFruit, masks: dict[tuple[int, int], np.ndarray],
-              part_of: dict[tuple[int, int, int], int], cfg: Config) -> float:
+def pair_cost(a: LocalFruit, b: LocalFruit, masks: dict[tuple[int, int], np.ndarray], cfg: Config) -> float:
     """Matching cost of two local fruits of different windows (inf = not the same fruit):
     distance / gate + (1 - IoU) with IoU pooled over the frames both windows rendered (0.5 if neither
     shows the fruit on any such frame). Centres farther apart than cfg.max_match_distance_m still match, up
@@ -205,11 +227,15 @@ def pair_cost(a: LocalFruit, b: LocalFruit, masks: dict[tuple[int, int], np.ndar
     if dist > max(cfg.max_match_distance_m, cfg.strong_match_distance_m):
         return np.inf
     inter = union = smaller = 0
+    codes_a, codes_b = defaultdict(list), defaultdict(list)
+    for lf, codes in ((a, codes_a), (b, codes_b)):
+        for f, g in lf.frames:
+            codes[f].append(code(lf.slot, g))
     for (w, f), m in masks.items():
         if w != a.window_id or (b.window_id, f) not in masks:
             continue
-        ma = (m == a.slot) & (part_of.get((a.window_id, a.slot, f), -1) == a.part)
-        mb = (masks[(b.window_id, f)] == b.slot) & (part_of.get((b.window_id, b.slot, f), -1) == b.part)
+        ma = np.isin(m, codes_a.get(f, []))
+        mb = np.isin(masks[(b.window_id, f)], codes_b.get(f, []))
         inter += int(np.count_nonzero(ma & mb))
         union += int(np.count_nonzero(ma | mb))
         smaller += min(int(np.count_nonzero(ma)), int(np.count_nonzero(mb)))
@@ -221,8 +247,7 @@ def pair_cost(a: LocalFruit, b: LocalFruit, masks: dict[tuple[int, int], np.ndar
     return dist / cfg.max_match_distance_m + (1.0 - iou)
 
 
-def associate(fruits: list[LocalFruit], masks: dict[tuple[int, int], np.ndarray],
-              part_of: dict[tuple[int, int, int], int], cfg: Config) -> list[list[int]]:
+def associate(fruits: list[LocalFruit], masks: dict[tuple[int, int], np.ndarray], cfg: Config) -> list[list[int]]:
     """Groups of local-fruit indices that are one fruit. Per window pair a Hungarian assignment on
     `pair_cost`; accepted pairs are then merged cheapest first (union-find) unless the merge would put
     two local fruits of the same window into one fruit."""
@@ -241,7 +266,7 @@ def associate(fruits: list[LocalFruit], masks: dict[tuple[int, int], np.ndarray]
                 continue
             cost = np.full(near.shape, np.inf)
             for r, c in zip(*np.nonzero(near)):
-                cost[r, c] = pair_cost(fruits[ia[r]], fruits[ib[c]], masks, part_of, cfg)
+                cost[r, c] = pair_cost(fruits[ia[r]], fruits[ib[c]], masks, cfg)
             finite = np.isfinite(cost)
             if not finite.any():
                 continue
@@ -293,17 +318,20 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
     shared_frames = set(shared[shared > 1].index.astype(int))
     n_cls = max(THING_IDS) + 1
 
-    # pass 1: per (window, slot, frame) pixel counts, classes and world points
-    slot_views: dict[tuple[int, int], dict[int, SlotView]] = defaultdict(dict)
+    # pass 1: per (window, slot, frame) pixel groups (split where their 3D points lie apart), with their pixel
+    # counts, classes and world points
+    slot_views: dict[tuple[int, int], dict[tuple[int, int], SlotView]] = defaultdict(dict)
     masks: dict[tuple[int, int], np.ndarray] = {}
+    groups_px: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}  # (pixel index, group > 0) per view
     for r in ctx.progress(views.itertuples(index=False), "read renders", total=len(views)):
         wid, fid = int(r.window_id), int(r.frame_id)
         fr = frames.loc[fid]
         sem, inst, depth = read_render(renders, wid, fid, (int(fr.height), int(fr.width)))
         thing = np.isin(sem, THING_IDS) & (inst > 0)
-        if fid in shared_frames:
-            masks[(wid, fid)] = np.where(thing, inst, 0).astype(np.int32)
+        group = np.zeros(inst.shape, np.int32)
         if not thing.any():
+            if fid in shared_frames:
+                masks[(wid, fid)] = group
             continue
         v, u = np.nonzero(thing)
         ids = inst[v, u]
@@ -314,14 +342,26 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
         for s0, s1 in zip(starts, np.r_[starts[1:], len(ids)]):
             vv, uu = v[s0:s1], u[s0:s1]
             good = depth[vv, uu] > 0
-            pick = subsample(int(good.sum()), cfg.max_points_per_view)
-            pts = unproject(depth, k, r.c2w, vv[good][pick], uu[good][pick])
-            cls = np.bincount(sem[vv, uu], minlength=n_cls)[:n_cls]
-            slot_views[(wid, int(ids[s0]))][fid] = SlotView(int(s1 - s0), cls, pts)
+            pts = unproject(depth, k, r.c2w, vv[good], uu[good])
+            labels = np.zeros(len(vv), np.int64)
+            labels[good] = point_groups(pts, cfg.group_gap_m, cfg.min_group_px, MAX_GROUPS)
+            group[vv, uu] = labels
+            if labels.any():
+                ctx.count("views_with_slot_groups")
+            for g in range(int(labels.max()) + 1):
+                mine = labels == g
+                pts_g = pts[labels[good] == g]
+                cls = np.bincount(sem[vv[mine], uu[mine]], minlength=n_cls)[:n_cls]
+                pts_g = pts_g[subsample(len(pts_g), cfg.max_points_per_view)]
+                slot_views[(wid, int(ids[s0]))][(fid, g)] = SlotView(int(mine.sum()), cls, pts_g)
+        if fid in shared_frames:
+            masks[(wid, fid)] = np.where(thing, inst * MAX_GROUPS + group, 0).astype(np.int32)
+        flat = np.flatnonzero(group)
+        if len(flat):
+            groups_px[(wid, fid)] = (flat, group.ravel()[flat])
 
-    # pass 2: window-local fruits (slots, split where their per-frame centres disagree)
+    # pass 2: window-local fruits (slots, split where the centres of their per-frame groups disagree)
     local: list[LocalFruit] = []
-    part_of: dict[tuple[int, int, int], int] = {}
     for (wid, slot), per_frame in sorted(slot_views.items()):
         centres = {f: (np.median(sv.points, 0) if len(sv.points) else None) for f, sv in per_frame.items()}
         parts = split_frames(centres, cfg.split_distance_m, cfg.min_split_frames)
@@ -340,12 +380,10 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
             else:
                 lf.median = robust_centre(pts)[0]
                 lf.centre = surface_centre(pts, cfg.max_fruit_radius_m) if cfg.centre == "sphere" else lf.median
-            for f in fids:
-                part_of[(wid, slot, f)] = p
             local.append(lf)
 
     # pass 3: associate across windows; row-level ids increase along the row (x, then z)
-    groups = associate(local, masks, part_of, cfg)
+    groups = associate(local, masks, cfg)
     gcentre = [np.median(np.stack([local[i].centre for i in g]), 0) for g in groups]
     order = sorted(range(len(groups)), key=lambda j: (gcentre[j][0], gcentre[j][2], gcentre[j][1]))
     if len(order) > 65535:
@@ -356,10 +394,10 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
     dropped = [lf for lf in local if lf.fruit_id == 0]
     ctx.count("slots", len(local))
     ctx.count("slots_dropped", len(dropped))
-    lut: dict[tuple[int, int, int], int] = {}
+    lut: dict[tuple[int, int, int], int] = {}  # (window, frame, slot code) -> fruit
     for lf in local:
-        for f in lf.frames:
-            lut[(lf.window_id, lf.slot, f)] = lf.fruit_id
+        for f, g in lf.frames:
+            lut[(lf.window_id, f, code(lf.slot, g))] = lf.fruit_id
 
     # pass 4: one fused panoptic image per frame, from the window whose centre is nearest
     pick = views.assign(abs_off=views.offset.abs()).sort_values(["frame_id", "abs_off", "window_id"])
@@ -373,9 +411,13 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
         thing = np.isin(sem, THING_IDS) & (inst > 0)
         out_inst = np.zeros(inst.shape, np.uint16)
         out_sem = sem.astype(np.uint8)
-        for slot in np.unique(inst[thing]):
-            m = thing & (inst == slot)
-            fruit_id = lut.get((wid, int(slot), fid), 0)
+        codes = inst.astype(np.int64) * MAX_GROUPS
+        if (wid, fid) in groups_px:
+            flat, g = groups_px[(wid, fid)]
+            codes.ravel()[flat] += g
+        for c in np.unique(codes[thing]):
+            m = thing & (codes == c)
+            fruit_id = lut.get((wid, fid, int(c)), 0)
             if fruit_id:
                 out_inst[m] = fruit_id
             else:
@@ -393,7 +435,7 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
                      **dict(zip(POSE_COLS, pose_txyzq(r.c2w[None])[0].tolist()))})
     slots = pd.DataFrame([{
         "window_id": lf.window_id, "slot": lf.slot, "part": lf.part, "fruit_id": lf.fruit_id,
-        "class_id": lf.class_id, "n_frames": len(lf.frames), "n_px": lf.n_px,
+        "class_id": lf.class_id, "n_frames": len({f for f, _ in lf.frames}), "n_px": lf.n_px,
         "x_m": None if lf.centre is None else float(lf.centre[0]),
         "y_m": None if lf.centre is None else float(lf.centre[1]),
         "z_m": None if lf.centre is None else float(lf.centre[2]),

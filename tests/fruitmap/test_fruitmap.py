@@ -14,7 +14,7 @@ from pipeline import cli
 from pipeline.classes import THING_IDS
 from pipeline.images import ImageError, read_label
 from pipeline.stage import StageContext
-from rowmap.geometry import surface_centre, window_alignments
+from rowmap.geometry import point_groups, surface_centre, window_alignments
 from stages import evaluate, fruit_count, panoptic_fusion, report
 
 from fruitmap_fixture import SEQ, TINY, run_stages
@@ -158,11 +158,11 @@ def test_window_alignments_recover_each_windows_transform_from_a_straight_track(
 def test_split_slots_become_separate_fruits_and_close_slots_never_merge_within_a_window():
     cfg = panoptic_fusion.Config(max_match_distance_m=0.05)
     c = np.zeros(3)
-    fruits = [panoptic_fusion.LocalFruit(0, 1, 0, [0], 50, 2, c),
-              panoptic_fusion.LocalFruit(0, 2, 0, [0], 50, 2, c + [0.01, 0, 0]),
-              panoptic_fusion.LocalFruit(1, 5, 0, [2], 50, 2, c + [0.005, 0, 0]),
-              panoptic_fusion.LocalFruit(2, 9, 0, [4], 50, 2, c + [0.3, 0, 0])]
-    groups = sorted(sorted(g) for g in panoptic_fusion.associate(fruits, {}, {}, cfg))
+    fruits = [panoptic_fusion.LocalFruit(0, 1, 0, [(0, 0)], 50, 2, c),
+              panoptic_fusion.LocalFruit(0, 2, 0, [(0, 0)], 50, 2, c + [0.01, 0, 0]),
+              panoptic_fusion.LocalFruit(1, 5, 0, [(2, 0)], 50, 2, c + [0.005, 0, 0]),
+              panoptic_fusion.LocalFruit(2, 9, 0, [(4, 0)], 50, 2, c + [0.3, 0, 0])]
+    groups = sorted(sorted(g) for g in panoptic_fusion.associate(fruits, {}, cfg))
     assert groups == [[0, 2], [1], [3]]  # window 1's slot joins the nearer of window 0's two slots
     parts = panoptic_fusion.split_frames({0: c, 1: c + 0.01, 5: c + [0.5, 0, 0], 6: None}, 0.08)
     assert parts == [[0, 1, 6], [5]]
@@ -174,35 +174,54 @@ def test_split_slots_become_separate_fruits_and_close_slots_never_merge_within_a
 
 def test_fusion_uses_mask_overlap_on_shared_frames():
     cfg = panoptic_fusion.Config()
-    a = panoptic_fusion.LocalFruit(0, 3, 0, [4], 50, 2, np.zeros(3))
-    b = panoptic_fusion.LocalFruit(1, 8, 0, [4], 50, 2, np.full(3, 0.005))
+    a = panoptic_fusion.LocalFruit(0, 3, 0, [(4, 0)], 50, 2, np.zeros(3))
+    b = panoptic_fusion.LocalFruit(1, 8, 0, [(4, 0)], 50, 2, np.full(3, 0.005))
     m_a, m_b = np.zeros((6, 6), np.int32), np.zeros((6, 6), np.int32)
-    m_a[:3, :3], m_b[:3, :3] = 3, 8
-    part_of = {(0, 3, 4): 0, (1, 8, 4): 0}
-    assert np.isfinite(panoptic_fusion.pair_cost(a, b, {(0, 4): m_a, (1, 4): m_b}, part_of, cfg))
+    m_a[:3, :3], m_b[:3, :3] = panoptic_fusion.code(3, 0), panoptic_fusion.code(8, 0)
+    assert np.isfinite(panoptic_fusion.pair_cost(a, b, {(0, 4): m_a, (1, 4): m_b}, cfg))
     m_b[:] = 0
-    m_b[3:, 3:] = 8                      # close in 3D but disjoint masks on a frame both rendered
-    assert panoptic_fusion.pair_cost(a, b, {(0, 4): m_a, (1, 4): m_b}, part_of, cfg) == np.inf
+    m_b[3:, 3:] = panoptic_fusion.code(8, 0)  # close in 3D but disjoint masks on a frame both rendered
+    assert panoptic_fusion.pair_cost(a, b, {(0, 4): m_a, (1, 4): m_b}, cfg) == np.inf
 
 
 def test_a_sliver_with_a_poor_centre_still_joins_the_fruit_whose_mask_holds_it():
     cfg = panoptic_fusion.Config(max_match_distance_m=0.04, min_mask_iou=0.3, strong_mask_overlap=0.8,
                                  strong_match_distance_m=0.08)
-    a = panoptic_fusion.LocalFruit(0, 3, 0, [4], 50, 2, np.zeros(3))
-    far = panoptic_fusion.LocalFruit(1, 8, 0, [4], 50, 2, np.array([0.06, 0.0, 0.0]))   # 6 cm: a sliver's centre
+    a = panoptic_fusion.LocalFruit(0, 3, 0, [(4, 0)], 50, 2, np.zeros(3))
+    far = panoptic_fusion.LocalFruit(1, 8, 0, [(4, 0)], 50, 2, np.array([0.06, 0.0, 0.0]))   # 6 cm: a sliver's centre
     m_a, m_b = np.zeros((6, 6), np.int32), np.zeros((6, 6), np.int32)
-    m_a[:3, :3], m_b[:3, :2] = 3, 8                                   # the other window renders it smaller
-    part_of = {(0, 3, 4): 0, (1, 8, 4): 0}
+    m_a[:3, :3], m_b[:3, :2] = panoptic_fusion.code(3, 0), panoptic_fusion.code(8, 0)  # the other window: smaller
     masks = {(0, 4): m_a, (1, 4): m_b}
-    assert np.isfinite(panoptic_fusion.pair_cost(a, far, masks, part_of, cfg))
+    assert np.isfinite(panoptic_fusion.pair_cost(a, far, masks, cfg))
     m_b[:] = 0
-    m_b[:3, 2:4] = 8                                                  # half outside: the 4 cm gate holds
-    assert panoptic_fusion.pair_cost(a, far, masks, part_of, cfg) == np.inf
-    assert panoptic_fusion.pair_cost(a, far, {(0, 4): m_a}, part_of, cfg) == np.inf   # no shared frame
-    too_far = panoptic_fusion.LocalFruit(1, 8, 0, [4], 50, 2, np.array([0.09, 0.0, 0.0]))
+    m_b[:3, 2:4] = panoptic_fusion.code(8, 0)  # half outside: the 4 cm gate holds
+    assert panoptic_fusion.pair_cost(a, far, masks, cfg) == np.inf
+    assert panoptic_fusion.pair_cost(a, far, {(0, 4): m_a}, cfg) == np.inf   # no shared frame
+    too_far = panoptic_fusion.LocalFruit(1, 8, 0, [(4, 0)], 50, 2, np.array([0.09, 0.0, 0.0]))
     m_b[:] = 0
-    m_b[:3, :3] = 8
-    assert panoptic_fusion.pair_cost(a, too_far, masks, part_of, cfg) == np.inf
+    m_b[:3, :3] = panoptic_fusion.code(8, 0)
+    assert panoptic_fusion.pair_cost(a, too_far, masks, cfg) == np.inf
+
+
+def test_a_slot_over_two_fruits_in_one_frame_splits_into_groups_that_join_their_own_fruit():
+    rng = np.random.default_rng(0)
+    near = rng.normal(0, 0.01, (300, 3))
+    behind = rng.normal(0, 0.01, (80, 3)) + [0.0, 0.0, 0.15]  # a second fruit 15 cm behind, same slot
+    stray = np.array([[0.3, 0.0, 0.0]] * 5)                   # a few boundary pixels on the far background
+    pts = np.concatenate([near, behind, stray])
+    labels = point_groups(pts, gap_m=0.03, min_size=20, max_groups=256)
+    assert (labels[:300] == 0).all() and (labels[300:380] == 1).all() and (labels[380:] == 0).all()
+    assert point_groups(pts, 0.0, 20, 256).max() == 0                  # gap 0: one group
+    assert point_groups(pts, 0.03, 20, max_groups=1).max() == 0        # only the largest group kept
+    assert point_groups(pts[:30], 0.03, 20, 256).max() == 0            # too few points to hold two groups
+    # frame 2 painted both fruits with the slot: its group on the fruit behind joins the frames that see
+    # that fruit with the same slot, not the slot's main part
+    c, far = np.zeros(3), np.array([0.0, 0.0, 0.15])
+    centres = {(0, 0): c, (1, 0): c, (2, 0): c, (2, 1): far, (3, 0): far, (4, 0): far}
+    assert panoptic_fusion.split_frames(centres, 0.08, min_frames=2) == [[(0, 0), (1, 0), (2, 0)],
+                                                                        [(2, 1), (3, 0), (4, 0)]]
+    with pytest.raises(ValueError, match="group_gap_m must be >= 0"):
+        panoptic_fusion.Config(group_gap_m=-1.0)
 
 
 def drop_renders(row, kinds: tuple[str, ...], window: int | None = None) -> None:
