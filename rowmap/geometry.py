@@ -1,12 +1,11 @@
 """Fruit geometry across windows: the row frame the windows are brought into, the centre of a fruit from
-its seen surface, groups of 3D points apart from each other, and an even subsample of points."""
+its seen surface, groups of pixels whose 3D points lie apart, and an even subsample of points."""
 from __future__ import annotations
 
 import numpy as np
 import pandas as pd
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
-from scipy.spatial import cKDTree
 
 from nerf.geometry import align_similarity, pose_matrix, similarity_matrix
 from nerf.surfaces import fit_sphere, plausible_fit, principal_extents, robust_centre
@@ -60,26 +59,32 @@ def subsample(n: int, cap: int) -> np.ndarray:
     return np.arange(n) if n <= cap else np.round(np.linspace(0, n - 1, cap)).astype(np.int64)
 
 
-def point_groups(points: np.ndarray, gap_m: float, min_size: int, max_groups: int, cap: int = 400) -> np.ndarray:
-    """Labels [N] of the groups 3D points [N, 3] form when points closer than gap_m are linked (single
-    linkage), largest group 0, then by size. Groups of fewer than min_size points join group 0, and so do
-    groups past the first max_groups. Linkage runs on an even subsample of at most `cap` points; every
-    point takes the group of its nearest subsampled point. gap_m <= 0 or fewer than 2 * min_size points:
-    all zeros."""
-    n = len(points)
+
+def pixel_groups(v: np.ndarray, u: np.ndarray, points: np.ndarray, gap_m: float, min_size: int,
+                 max_groups: int) -> np.ndarray:
+    """Labels [N] of the groups that pixels (v, u) [N] with 3D points [N, 3] form when image neighbours (left,
+    right, up, down) are linked if their points lie closer than gap_m: a depth jump or an image gap
+    separates groups. Largest group 0, then by size; groups of fewer than min_size pixels join group 0,
+    and so do groups past the first max_groups. gap_m <= 0 or fewer than 2 * min_size pixels: all zeros."""
+    n = len(v)
     if gap_m <= 0 or n < 2 * min_size:
         return np.zeros(n, np.int64)
-    sub = points[subsample(n, cap)]
-    tree = cKDTree(sub)
-    pairs = tree.query_pairs(gap_m, output_type="ndarray")
-    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(sub), len(sub)))
-    k, lab = connected_components(graph, directed=False)
+    index = np.full((int(v.max()) + 2, int(u.max()) + 2), -1, np.int64)
+    index[v, u] = np.arange(n)
+    pairs = []
+    for dv, du in ((0, 1), (1, 0)):
+        j = index[v + dv, u + du]
+        i = np.flatnonzero(j >= 0)
+        j = j[i]
+        near = np.linalg.norm(points[i] - points[j], axis=1) < gap_m
+        pairs.append((i[near], j[near]))
+    i = np.concatenate([p[0] for p in pairs])
+    j = np.concatenate([p[1] for p in pairs])
+    k, lab = connected_components(coo_matrix((np.ones(len(i)), (i, j)), shape=(n, n)), directed=False)
     if k == 1:
         return np.zeros(n, np.int64)
-    lab = lab[tree.query(points)[1]] if len(sub) < n else lab
-    sizes = np.bincount(lab, minlength=k)
     rank = np.empty(k, np.int64)
-    rank[np.argsort(-sizes, kind="stable")] = np.arange(k)
+    rank[np.argsort(-np.bincount(lab, minlength=k), kind="stable")] = np.arange(k)
     lab = rank[lab]
     keep = (np.bincount(lab, minlength=k) >= min_size) & (np.arange(k) < max_groups)
     keep[0] = True

@@ -15,7 +15,7 @@ from nerf.surfaces import robust_centre, unproject
 from pipeline.classes import THING_IDS, VOID
 from pipeline.images import ImageError, write_png
 from pipeline.stage import StageContext
-from rowmap.geometry import POSE_COLS, point_groups, subsample, surface_centre, window_alignments
+from rowmap.geometry import POSE_COLS, pixel_groups, subsample, surface_centre, window_alignments
 from rowmap.renders import PANOPTIC_KINDS, Renders
 
 INPUTS = ("frames", "windows", "window_poses", "window_metrics", "nerf", "renders")
@@ -47,12 +47,13 @@ class Config:
     when touching fruits get merged, lower it when one fruit keeps two ids across windows."""
     group_gap_m: float = 0.03
     """metres, >= 0. In each rendered frame, a slot's pixels are un-projected (rendered depth) and split into
-    groups wherever their 3D points lie farther apart than this gap: the NeRF sometimes paints one slot over
-    two fruits in a frame (a fruit and one behind or beside it). Each group is then placed on its own
+    groups: neighbouring pixels stay together when their 3D points lie closer than this gap, so a depth jump
+    or pixels that do not touch in the image separate groups. The NeRF sometimes paints one slot over two
+    fruits in a frame (a fruit and one behind or beside it). Each group is then placed on its own
     (split_distance_m below): a group on another fruit's surface joins the part of the slot that sees that
     fruit in other frames, or becomes a part of its own. 0 = a slot's pixels in a frame stay one group.
-    Keep it above the rendered depth's noise on one surface (about 1 cm) and below the gaps that separate
-    neighbouring fruits."""
+    Keep it above the depth step between neighbouring pixels on one steep surface (about 1 cm at 1 m) and
+    below the depth gaps that separate a fruit from one behind it."""
     min_group_px: int = 50
     """pixels of the frame, >= 1: a group smaller than this stays with the slot's largest group in that frame
     (stray boundary pixels whose rendered depth falls on what lies behind them). Scale it with the image
@@ -344,7 +345,7 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
             good = depth[vv, uu] > 0
             pts = unproject(depth, k, r.c2w, vv[good], uu[good])
             labels = np.zeros(len(vv), np.int64)
-            labels[good] = point_groups(pts, cfg.group_gap_m, cfg.min_group_px, MAX_GROUPS)
+            labels[good] = pixel_groups(vv[good], uu[good], pts, cfg.group_gap_m, cfg.min_group_px, MAX_GROUPS)
             group[vv, uu] = labels
             if labels.any():
                 ctx.count("views_with_slot_groups")

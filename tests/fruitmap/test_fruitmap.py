@@ -14,7 +14,7 @@ from pipeline import cli
 from pipeline.classes import THING_IDS
 from pipeline.images import ImageError, read_label
 from pipeline.stage import StageContext
-from rowmap.geometry import point_groups, surface_centre, window_alignments
+from rowmap.geometry import pixel_groups, surface_centre, window_alignments
 from stages import evaluate, fruit_count, panoptic_fusion, report
 
 from fruitmap_fixture import SEQ, TINY, run_stages
@@ -204,16 +204,23 @@ def test_a_sliver_with_a_poor_centre_still_joins_the_fruit_whose_mask_holds_it()
 
 
 def test_a_slot_over_two_fruits_in_one_frame_splits_into_groups_that_join_their_own_fruit():
-    rng = np.random.default_rng(0)
-    near = rng.normal(0, 0.01, (300, 3))
-    behind = rng.normal(0, 0.01, (80, 3)) + [0.0, 0.0, 0.15]  # a second fruit 15 cm behind, same slot
-    stray = np.array([[0.3, 0.0, 0.0]] * 5)                   # a few boundary pixels on the far background
-    pts = np.concatenate([near, behind, stray])
-    labels = point_groups(pts, gap_m=0.03, min_size=20, max_groups=256)
-    assert (labels[:300] == 0).all() and (labels[300:380] == 1).all() and (labels[380:] == 0).all()
-    assert point_groups(pts, 0.0, 20, 256).max() == 0                  # gap 0: one group
-    assert point_groups(pts, 0.03, 20, max_groups=1).max() == 0        # only the largest group kept
-    assert point_groups(pts[:30], 0.03, 20, 256).max() == 0            # too few points to hold two groups
+    # one slot's pixels in a 20x40 patch: the larger left part on a fruit 0.5 m away, the rest on one 15 cm
+    # behind it (a depth jump), and a 2-pixel speck of boundary pixels on the far background
+    v, u = np.mgrid[0:20, 0:40]
+    v, u = v.ravel(), u.ravel()
+    depth = np.where(u < 25, 0.5, 0.65) + 0.001 * np.sin(v)  # a little noise on each surface
+    depth[(v == 0) & (u < 2)] = 3.0
+    pts = np.stack([u * 0.001, v * 0.001, depth], 1)
+    labels = pixel_groups(v, u, pts, gap_m=0.03, min_size=20, max_groups=256)
+    left, right = (u < 25) & ~((v == 0) & (u < 2)), u >= 25
+    assert set(labels[left]) == {0} and set(labels[right]) == {1}
+    assert set(labels[(v == 0) & (u < 2)]) == {0}                        # under min_size: joins the largest
+    assert pixel_groups(v, u, pts, 0.0, 20, 256).max() == 0             # gap 0: one group
+    assert pixel_groups(v, u, pts, 0.03, 20, max_groups=1).max() == 0   # only the largest group kept
+    apart = u % 20 < 10                                                  # two blobs with an image gap between
+    flat = np.stack([u * 0.001, v * 0.001, np.full(len(u), 0.5)], 1)
+    assert len(set(pixel_groups(v[apart], u[apart], flat[apart], 0.03, 20, 256))) == 2
+    assert pixel_groups(v, u, flat, 0.03, 20, 256).max() == 0            # one connected surface
     # frame 2 painted both fruits with the slot: its group on the fruit behind joins the frames that see
     # that fruit with the same slot, not the slot's main part
     c, far = np.zeros(3), np.array([0.0, 0.0, 0.15])
