@@ -154,11 +154,9 @@ def dominant_ids(gt_inst: np.ndarray, pred_inst: np.ndarray, fruit_ids: Iterable
     return out
 
 
-def id_consistency(per_frame: list[dict[int, int]], min_frames: int = 3) -> tuple[float, int]:
-    """Share of fruits seen in >= min_frames frames that carry one single non-zero predicted id in all
-    of them, that id belonging to no other fruit in any frame. `per_frame`: list over frames of
-    {gt fruit id: dominant predicted id} (from `dominant_ids`). Returns (share, number of fruits scored).
-    """
+def ids_by_fruit(per_frame: list[dict[int, int]]) -> tuple[dict[int, list[int]], dict[int, set[int]]]:
+    """From per-frame {gt fruit id: dominant predicted id}: (the predicted ids each fruit carries, frame by
+    frame; the fruits each non-zero predicted id covers)."""
     seen: dict[int, list[int]] = {}
     owners: dict[int, set[int]] = {}
     for frame in per_frame:
@@ -166,6 +164,15 @@ def id_consistency(per_frame: list[dict[int, int]], min_frames: int = 3) -> tupl
             seen.setdefault(f, []).append(p)
             if p:
                 owners.setdefault(p, set()).add(f)
+    return seen, owners
+
+
+def id_consistency(per_frame: list[dict[int, int]], min_frames: int = 3) -> tuple[float, int]:
+    """Share of fruits seen in >= min_frames frames that carry one single non-zero predicted id in all
+    of them, that id belonging to no other fruit in any frame. `per_frame`: list over frames of
+    {gt fruit id: dominant predicted id} (from `dominant_ids`). Returns (share, number of fruits scored).
+    """
+    seen, owners = ids_by_fruit(per_frame)
     scored = [f for f, ps in seen.items() if len(ps) >= min_frames]
     if not scored:
         return float("nan"), 0
@@ -179,13 +186,7 @@ def id_failures(per_frame: list[dict[int, int]], min_frames: int = 3) -> dict[st
     frame, or painted as stuff); 'split' = it carries two or more non-zero ids over its frames; 'shared' = an
     id it carries is another fruit's in some frame; 'one_frame' = it would pass without one of its frames
     (every other frame carries one id that no other fruit carries). Input as for `id_consistency`."""
-    seen: dict[int, list[int]] = {}
-    owners: dict[int, set[int]] = {}
-    for frame in per_frame:
-        for f, p in frame.items():
-            seen.setdefault(f, []).append(p)
-            if p:
-                owners.setdefault(p, set()).add(f)
+    seen, owners = ids_by_fruit(per_frame)
     out = {"unlabelled": 0, "split": 0, "shared": 0, "one_frame": 0}
     for f, ps in seen.items():
         nonzero = set(ps) - {0}
