@@ -50,6 +50,24 @@ def test_bad_input_read_only_data_folder_is_an_error_naming_it(synth_root, capsy
     assert f"the folder {synth_root} is read-only or not writable by this user" in err and "cannot write" in err
 
 
+def test_bad_input_read_only_file_system_is_an_error_naming_it(synth_root, capsys, monkeypatch):
+    """data/ on a read-only mount: every open for writing fails with EROFS, for root too (unlike the chmod
+    case above), and the run stops with the same one-paragraph error naming the folder."""
+    real_open = os.open
+    interim = str(synth_root / "interim")
+
+    def read_only_open(path, flags, *args, **kwargs):
+        if str(path).startswith(interim) and flags & (os.O_WRONLY | os.O_RDWR | os.O_CREAT):
+            raise OSError(errno.EROFS, "Read-only file system", str(path))
+        return real_open(path, flags, *args, **kwargs)
+
+    monkeypatch.setattr(os, "open", read_only_open)
+    assert pag("ingest", "--seq", "synth_t", "--data-root", str(synth_root)) == 2
+    err = capsys.readouterr().err
+    assert "read-only or not writable by this user" in err and "cannot write" in err
+    assert str(synth_root / "interim" / "synth_t") in err
+
+
 def test_bad_input_data_folder_with_a_file_in_the_way_is_an_error_naming_it(synth_root, capsys):
     import shutil
     shutil.rmtree(synth_root / "interim")
