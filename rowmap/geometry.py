@@ -59,7 +59,6 @@ def subsample(n: int, cap: int) -> np.ndarray:
     return np.arange(n) if n <= cap else np.round(np.linspace(0, n - 1, cap)).astype(np.int64)
 
 
-
 def pixel_groups(v: np.ndarray, u: np.ndarray, points: np.ndarray, gap_m: float, min_size: int,
                  max_groups: int) -> np.ndarray:
     """Labels [N] of the groups that pixels (v, u) [N] with 3D points [N, 3] form when image neighbours (left,

@@ -146,8 +146,9 @@ def read_render(renders: Renders, wid: int, fid: int, shape: tuple[int, int]) ->
 
 # -- fusion ----------------------------------------------------------------------------------------------
 
-def code(slot: int, group: int) -> int:
-    """One number for a slot's pixel group in a frame (the masks of frames several windows rendered)."""
+def code(slot, group):
+    """One number for a slot's pixel group in a frame: the keys of the lookup from groups to fruits and the
+    pixels of the masks of frames several windows rendered. Integers or integer arrays (int32 or wider)."""
     return slot * MAX_GROUPS + group
 
 
@@ -356,7 +357,7 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
                 pts_g = pts_g[subsample(len(pts_g), cfg.max_points_per_view)]
                 slot_views[(wid, int(ids[s0]))][(fid, g)] = SlotView(int(mine.sum()), cls, pts_g)
         if fid in shared_frames:
-            masks[(wid, fid)] = np.where(thing, inst * MAX_GROUPS + group, 0).astype(np.int32)
+            masks[(wid, fid)] = np.where(thing, code(inst, group), 0).astype(np.int32)
         flat = np.flatnonzero(group)
         if len(flat):
             groups_px[(wid, fid)] = (flat, group.ravel()[flat])
@@ -412,10 +413,11 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
         thing = np.isin(sem, THING_IDS) & (inst > 0)
         out_inst = np.zeros(inst.shape, np.uint16)
         out_sem = sem.astype(np.uint8)
-        codes = inst.astype(np.int64) * MAX_GROUPS
+        group = np.zeros(inst.shape, np.int64)
         if (wid, fid) in groups_px:
             flat, g = groups_px[(wid, fid)]
-            codes.ravel()[flat] += g
+            group.ravel()[flat] = g
+        codes = code(inst.astype(np.int64), group)
         for c in np.unique(codes[thing]):
             m = thing & (codes == c)
             fruit_id = lut.get((wid, fid, int(c)), 0)
