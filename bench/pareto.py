@@ -3,12 +3,12 @@ phase with online poses, then the panoptic phase) with one setting of levels, lo
 steps and rays per step, and is scored on the same validation frames against ground truth. The Pareto
 fronts (least fit time for the quality) of fit time vs PSNR and fit time vs PQ are plotted, with the
 presets (their knobs, at this run's step count where the preset's own is longer) marked. Samples per ray
-move with the marching step (`step_factor` x the preset's step_scale); image scale (`image_scale`) fits,
+move with the marching step (`step_factor` x the preset's cone_angle); image scale (`image_scale`) fits,
 renders and scores the window at a lower resolution (colour by area averaging, depth, labels and the
 ground truth by nearest pixel, intrinsics scaled), so its PSNR and PQ are those of the smaller images.
 
 Output `pareto.parquet`, one row per point: point, preset ('cpu', 'S', 'L' or '' for other settings),
-n_levels, log2_capacity, image_scale, step_scale, samples_per_ray (training), colour_steps, rays_per_step, panoptic_steps, params, fit_min_per_window
+n_levels, log2_capacity, image_scale, cone_angle, samples_per_ray (training), colour_steps, rays_per_step, panoptic_steps, params, fit_min_per_window
 (colour + panoptic, minutes), render_s_per_image (median, colour + panoptic in one pass), psnr (dB), pq,
 miou, id_consistency, count_pred / count_gt / count_error_rel (the window's fruit count on the scored frames,
 bench.ablation.window_count), front_psnr / front_pq (on the front of fit time vs that metric), val_frames,
@@ -101,11 +101,11 @@ def run(seq: str = "synth_row", window: int = 1, mode: str = "default", val_fram
         scale = change.pop("image_scale", 1.0)
         step_factor = change.pop("step_factor", 1.0)
         ncfg = preset(pre, steps=steps, seed=window, **change)
-        ncfg = replace(ncfg, step_scale=ncfg.step_scale * step_factor)
+        ncfg = replace(ncfg, cone_angle=ncfg.cone_angle * step_factor)
         r = fit_and_score(*downscale(data, labels, gts, scale), ncfg, pcfg)
         rows.append({"point": name, "preset": pre if not change and name.endswith("preset") else "",
                      "n_levels": ncfg.n_levels, "log2_capacity": ncfg.log2_capacity, "image_scale": scale,
-                     "step_scale": ncfg.step_scale, **r,
+                     "cone_angle": ncfg.cone_angle, **r,
                      "val_frames": int((~data.is_train).sum()), "settings": settings, "seq": seq, "window": window})
         print(f"{name}: fit {r['fit_min_per_window']:.2f} min, render {r['render_s_per_image']:.1f} s, "
               f"PSNR {r['psnr']:.2f}, PQ {r['pq']:.3f}, count {r['count_pred']:.0f}/{r['count_gt']:.0f}", flush=True)
@@ -157,7 +157,7 @@ def main(argv: list[str] | None = None) -> int:
     a = p.parse_args(argv)
     mode = "quick" if a.quick else "long" if a.long else "default"
     df = run(a.seq, a.window, mode, a.val_frames, a.threads, a.data_root, a.out)
-    cols = ["point", "n_levels", "log2_capacity", "colour_steps", "rays_per_step", "image_scale", "step_scale",
+    cols = ["point", "n_levels", "log2_capacity", "colour_steps", "rays_per_step", "image_scale", "cone_angle",
             "samples_per_ray", "params", "fit_min_per_window",
             "render_s_per_image", "psnr", "pq", "miou", "count_error_rel", "front_psnr", "front_pq"]
     print(df[cols].to_string(index=False, float_format=lambda v: f"{v:.3f}"))

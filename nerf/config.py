@@ -16,6 +16,10 @@ FieldKind = Literal["permuto", "mlp_pe"]
 GridMode = Literal["delta", "shared", "independent"]
 
 
+BASE_PIXELS = 320 * 180
+"""Image size (pixels) the presets' ray budget is set for."""
+
+
 @dataclass(frozen=True)
 class NerfConfig:
     preset: Preset = "cpu"
@@ -48,7 +52,13 @@ class NerfConfig:
     """optimisation steps of the colour phase (>= 1). Fit time grows linearly with it; the cpu preset is sized
     to fit a window in a few minutes on one core."""
     rays_per_step: int = 1024
-    """rays per optimisation step (>= 2: half carry the depth loss, half move the poses)."""
+    """rays per optimisation step for an image of up to BASE_PIXELS (320x180) pixels (>= 2: half carry the depth
+    loss, half move the poses); larger images get more (rays_area_exponent, `rays_for`)."""
+    rays_area_exponent: float = 0.25
+    """>= 0: an image with more pixels than BASE_PIXELS trains on rays_per_step x (pixels / BASE_PIXELS) to this
+    power rays per step (0.25: x1.41 at 640x360, x2 at 1280x720; 0 = rays_per_step at every size). A large
+    image holds finer texture than the same rays see within the steps; the fit time grows about in proportion
+    to the rays. Smaller images keep rays_per_step."""
     edge_ray_share: float = 0.25
     """share (0-1) of each step's rays drawn with probability proportional to the training image's colour
     gradient magnitude (the rest uniformly over the training pixels): most colour error sits on fine texture
@@ -97,9 +107,12 @@ class NerfConfig:
     far_m: float = 3.5
     """far plane, metres (> near_m): should cover everything visible (far row, back wall); it also sets the
     window's bounds."""
-    step_scale: float = 3.0
-    """marching step = step_scale x the pixel footprint at the sample's depth (cone marching; > 0). Smaller
-    steps sample thin structures better at a proportional cost."""
+    cone_angle: float = 0.0129
+    """radians (> 0): the marching step at depth t is cone_angle x t (cone marching; 0.0129 = 1.3 cm at 1 m,
+    about three pixel footprints of a 320 px wide image across 69 degrees). It depends on the scene, not on the
+    image size: a large image (1280x720) or a render at a working scale keeps the samples per ray, so a ray
+    still reaches the far row within max_samples_per_ray. Smaller angles sample thin structures better at a
+    proportional cost."""
     max_samples_per_ray: int = 96
     """cap on the samples per ray during training (>= 1)."""
     occupancy_res: int = 256
@@ -120,6 +133,19 @@ class NerfConfig:
     """rays per chunk when rendering images (>= 1): bounds the memory of a render, not its result."""
     seed: int = 0
     """random seed of the fit (initialisation and ray draws)."""
+
+    def __post_init__(self) -> None:
+        if not self.cone_angle > 0:
+            raise ValueError(f"cone_angle must be > 0 (radians), got {self.cone_angle}")
+        if not self.rays_area_exponent >= 0:
+            raise ValueError(f"rays_area_exponent must be >= 0, got {self.rays_area_exponent}")
+
+    def rays_for(self, pixels: int) -> int:
+        """Rays per step for images of `pixels` pixels (rays_per_step, grown by rays_area_exponent above
+        BASE_PIXELS)."""
+        if pixels <= BASE_PIXELS:
+            return self.rays_per_step
+        return int(round(self.rays_per_step * (pixels / BASE_PIXELS) ** self.rays_area_exponent))
 
 
 PRESETS: dict[str, dict] = {

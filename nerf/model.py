@@ -35,7 +35,10 @@ class NerfModel:
 
     @classmethod
     def from_state(cls, state: dict, device: str = "cpu") -> "NerfModel":
-        cfg = config_from_state(NerfConfig, state["cfg"])
+        values = dict(state["cfg"])
+        if "step_scale" in values:  # checkpoints from before cone_angle: the step was step_scale pixel footprints
+            values["cone_angle"] = float(values.pop("step_scale")) / float(state["intrinsics"][:, 0].mean())
+        cfg = config_from_state(NerfConfig, values)
         sc = state["scene"]
         scene = Scene(sc["centre"], sc["scale_m"], sc["lo"], sc["hi"]).to(device)
         fld = build_field(cfg, scene.scale_m).to(device)
@@ -45,8 +48,7 @@ class NerfModel:
                    state.get("extras", {}))
 
     def edges(self, device) -> Tensor:
-        step = self.cfg.step_scale / float(self.intrinsics[:, 0].mean())
-        return cone_steps(self.cfg.near_m, self.cfg.far_m, step, device)
+        return cone_steps(self.cfg.near_m, self.cfg.far_m, self.cfg.cone_angle, device)
 
     def occupied_fn(self):
         if self.cfg.skip_empty:

@@ -108,18 +108,19 @@ def fit_window(data: WindowData, cfg: NerfConfig, device: str = "cpu",
     val_opt = torch.optim.Adam(poses.parameters(), lr=cfg.lr_pose * 3)
     edges = model.edges(dev)
     occ_fn = model.occupied_fn()
-    step_m = float(cfg.step_scale / k[:, 0].mean() * 0.5)
+    step_m = cfg.cone_angle * 0.5  # the marching step at half a metre
     history: list[dict] = []
     if cfg.field_kind == "permuto":  # build or load the fused kernel before the clock starts: a first build on
         load_permuto_ext(dev.type)   # a fresh machine takes over a minute of compiling, not of fitting
     t0 = time.perf_counter()
-    n_edge = int(round(cfg.rays_per_step * cfg.edge_ray_share))
+    n_rays = cfg.rays_for(w * h)
+    n_edge = int(round(n_rays * cfg.edge_ray_share))
     edge_cdf = gradient_cdf(images[train_idx]) if n_edge else None
     val_cdf = gradient_cdf(images[val_idx]) if len(val_idx) and cfg.val_register_edge_share > 0 else None
     for step in range(cfg.steps):
-        frames, u, v = draw_pixels(train_idx, cfg.rays_per_step, h, w, g, edge_cdf, n_edge)
+        frames, u, v = draw_pixels(train_idx, n_rays, h, w, g, edge_cdf, n_edge)
         # half the rays move the poses (colour loss only); the other half carry the depth loss, detached
-        pose_rays = torch.arange(cfg.rays_per_step, device=dev) % 2 == 0
+        pose_rays = torch.arange(n_rays, device=dev) % 2 == 0
         pose_on = cfg.refine_poses and step >= cfg.pose_warmup_steps
         o, d = _rays_for(model, poses, c2w0, k, frames, u.float() + 0.5, v.float() + 0.5,
                          pose_rays if pose_on else torch.zeros_like(pose_rays))
@@ -152,7 +153,7 @@ def fit_window(data: WindowData, cfg: NerfConfig, device: str = "cpu",
         if step % 50 == 0 or step == cfg.steps - 1:
             rec = {"step": step, "loss": float(loss.detach()),
                    "psnr": psnr_from_mse(max(float(loss_c.detach()), 1e-10)),
-                   "occupied": grid.occupied_share(), "samples_per_ray": len(s) / cfg.rays_per_step}
+                   "occupied": grid.occupied_share(), "samples_per_ray": len(s) / n_rays}
             history.append(rec)
             if progress:
                 progress(step + 1, cfg.steps, {"psnr": rec["psnr"]})
@@ -173,16 +174,23 @@ def fit_window(data: WindowData, cfg: NerfConfig, device: str = "cpu",
 
 def validate(res: FitResult, data: WindowData, render: Callable[[int], dict]) -> None:
     """Render every validation frame with `render(i)` (a dict with at least rgb [H, W, 3] and
-    samples_per_ray) and fill res.renders, val_psnr, samples_per_ray and render_s_per_image."""
+    samples_per_ray) and fill res.renders, val_psnr, samples_per_ray and render_s_per_image. A render made at
+    a working scale carries its colour at that scale as "rgb_working" [h, w, 3] (not kept in res.renders): its
+    PSNR is measured there, against the recorded image area-averaged to that size."""
+    import cv2
+
     spr, render_s = [], []
     for i in np.flatnonzero(~data.is_train).tolist():
         t1 = time.perf_counter()
         out = render(i)
         render_s.append(time.perf_counter() - t1)
+        rgb, image = out.pop("rgb_working", out["rgb"]), data.images[i]
+        if rgb.shape[:2] != image.shape[:2]:
+            image = cv2.resize(image, (rgb.shape[1], rgb.shape[0]), interpolation=cv2.INTER_AREA)
         res.renders[i] = out
         spr.append(out["samples_per_ray"])
-        target = torch.from_numpy(data.images[i]).to(out["rgb"].device).float() / 255.0
-        res.val_psnr[int(data.frame_ids[i])] = psnr(out["rgb"], target)
+        target = torch.from_numpy(image).to(rgb.device).float() / 255.0
+        res.val_psnr[int(data.frame_ids[i])] = psnr(rgb, target)
     res.samples_per_ray = float(np.mean(spr)) if spr else float("nan")
     res.render_s_per_image = float(np.median(render_s)) if render_s else float("nan")
 

@@ -20,7 +20,8 @@ SCHEMA = table_schema(
     col("fit_s", pa.float64(), "wall time of the fit", "s"),
     col("render_s_per_image", pa.float64(), "wall time to render one full validation image", "s"),
     col("samples_per_ray", pa.float64(), "mean samples evaluated per ray when rendering validation images", "samples"),
-    col("val_psnr", pa.float64(), "mean PSNR over the validation frames (poses registered to the frozen model)", "dB"),
+    col("val_psnr", pa.float64(), "mean PSNR over the validation frames (poses registered to the frozen model), each at "
+        "the scale it was rendered at (nerf_fit.render_scale; the recorded image area-averaged to that size)", "dB"),
     col("train_psnr", pa.float64(), "mean PSNR over the training frames", "dB"),
     col("panoptic_steps", pa.int32(), "steps of the panoptic phase (0 = panoptic off)"),
     col("panoptic_fit_s", pa.float64(), "wall time of the panoptic phase (included in nothing else)", "s"),

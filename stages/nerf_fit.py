@@ -58,17 +58,28 @@ class Config:
     """random seed of the fits."""
     panoptic: PanopticConfig = field(default_factory=PanopticConfig)
     """the panoptic phase after the colour phase (nerf/panoptic/train.py)."""
-    render_scale: float = 1.0
-    """working scale of the validation renders that fusion and counting use, in (0, 1]: 0.5 renders them at half
+    render_scale: float = 0.0
+    """working scale of the validation renders that fusion and counting use, in [0, 1]: 0.5 renders them at half
     width and height (intrinsics scaled alike; about a quarter of the render time) and stores them resized back
     to full size (colour bilinear; depth and labels nearest, so no depth or label is invented between two
     surfaces). Labelled frames (the window's centre included) are always rendered at full size, so the
-    evaluated frames keep their detail. Validation PSNR is measured on the stored images. Lower it for large
-    images (1280x720) where full-size renders dominate the cost; 1 = full size (no resizing)."""
+    evaluated frames keep their detail. 1 = full size (no resizing); 0 = automatic: the largest scale whose
+    renders are at most RENDER_WIDTH (640) pixels wide (1 up to 640x360, 0.5 at 1280x720), since full-size
+    renders of large images cost more than the fit. Validation PSNR is measured at the scale each frame was
+    rendered at (the recorded image area-averaged to that size)."""
 
     def __post_init__(self) -> None:
-        if not 0 < self.render_scale <= 1:
-            raise ValueError(f"nerf_fit.render_scale must be in (0, 1], got {self.render_scale}")
+        if not 0 <= self.render_scale <= 1:
+            raise ValueError(f"nerf_fit.render_scale must be in [0, 1] (0 = automatic), got {self.render_scale}")
+
+
+RENDER_WIDTH = 640
+"""Width (pixels) of the working renders with nerf_fit.render_scale = 0 (automatic)."""
+
+
+def working_scale(render_scale: float, width: int) -> float:
+    """The render scale for images `width` pixels wide: render_scale, or with 0 the automatic one."""
+    return render_scale if render_scale > 0 else min(1.0, RENDER_WIDTH / width)
 
 
 def model_config(cfg: Config) -> NerfConfig:
@@ -122,11 +133,18 @@ def to_full_size(out: dict, wh: tuple[int, int]) -> dict:
 
 def render_at(render, model, scale: float, full_size: set[int]):
     """render(model, i) -> a render of frame i at the working `scale` (full size for frames in `full_size`),
-    returned at full size."""
+    returned at full size; a resized one keeps its colour at the working scale as "rgb_working"."""
     if scale >= 1:
         return lambda i: render(model, i)
     small = scaled_model(model, scale)
-    return lambda i: render(model, i) if i in full_size else to_full_size(render(small, i), model.wh)
+
+    def at_scale(i: int) -> dict:
+        if i in full_size:
+            return render(model, i)
+        out = render(small, i)
+        return {**to_full_size(out, model.wh), "rgb_working": out["rgb"]}
+
+    return at_scale
 
 
 def fit_one(payload: dict) -> dict:
@@ -177,7 +195,8 @@ def fit_one(payload: dict) -> dict:
         state["panoptic"] = pan.state()
         full = set(np.flatnonzero(frames[[c for c in ("is_center", "labelled") if c in frames]].any(axis=1)).tolist())
         validate(res, data, reporting_render(key, render_at(lambda m, i: render_panoptic(m, pan, i), res.model,
-                                                            payload.get("render_scale", 1.0), full),
+                                                            working_scale(payload.get("render_scale", 1.0),
+                                                                          res.model.wh[0]), full),
                                              data.is_train, "panoptic validation render"))
         val = [int(i) for i in np.flatnonzero(~data.is_train)]
         parallel.report(key, 0, 1, phase="instance completion")

@@ -116,3 +116,52 @@ def test_registration_anneals_its_rate_draws_rays_on_texture_and_restores_the_ra
     assert ((frames == val[0]) & ((u == 19) | (u == 20))).float().mean() > 0.8
     frames = torch.cat([f[100:] for f, _ in drawn])                    # the other half: every validation frame
     assert set(frames.tolist()) == set(val.tolist())
+
+
+def test_a_checkpoint_with_the_old_pixel_footprint_step_loads_with_the_same_step(short_fit):
+    state = short_fit.model.state()
+    fx = float(state["intrinsics"][:, 0].mean())
+    old = {**state, "cfg": {k: v for k, v in state["cfg"].items() if k != "cone_angle"} | {"step_scale": 3.0}}
+    again = NerfModel.from_state(old)
+    assert again.cfg.cone_angle == pytest.approx(3.0 / fx)
+    edges = again.edges(torch.device("cpu"))
+    assert torch.allclose((edges[1:] - edges[:-1])[:-1], edges[:-2] * 3.0 / fx, rtol=1e-4)  # the last one ends at far
+
+
+def test_the_marching_step_is_the_same_for_every_image_size_and_render_scale(short_fit):
+    from stages.nerf_fit import scaled_model
+
+    model = short_fit.model
+    small = scaled_model(model, 0.5)
+    assert small.wh != model.wh and torch.equal(small.edges(torch.device("cpu")), model.edges(torch.device("cpu")))
+    with pytest.raises(ValueError, match="cone_angle"):
+        preset("cpu", cone_angle=0.0)
+
+
+def test_rays_per_step_grow_with_the_image_area_above_the_base_size():
+    from nerf.config import BASE_PIXELS
+
+    cfg = preset("cpu")
+    assert cfg.rays_for(64 * 40) == cfg.rays_for(BASE_PIXELS) == cfg.rays_per_step
+    assert cfg.rays_for(1280 * 720) == 2 * cfg.rays_per_step  # 16 x the pixels, to the power 1/4
+    assert cfg.rays_for(640 * 360) == round(cfg.rays_per_step * 2 ** 0.5)
+    assert preset("cpu", rays_area_exponent=0.0).rays_for(1280 * 720) == cfg.rays_per_step
+    with pytest.raises(ValueError, match="rays_area_exponent"):
+        preset("cpu", rays_area_exponent=-1.0)
+
+
+def test_a_large_image_trains_on_more_rays_per_step(window, monkeypatch):
+    import nerf.trainer as trainer
+
+    drawn = []
+    real = trainer.draw_pixels
+
+    def spy(idx, n, *args, **kw):
+        drawn.append(n)
+        return real(idx, n, *args, **kw)
+
+    monkeypatch.setattr(trainer, "draw_pixels", spy)
+    # the tiny window is 40 x 24 px: with a base size of 60 px it is 16 times larger
+    monkeypatch.setattr("nerf.config.BASE_PIXELS", 60)
+    fit_window(window, preset("cpu", **{**FAST, "steps": 2}), render_val=False)
+    assert drawn[:2] == [2 * FAST["rays_per_step"]] * 2  # the two training steps (validation registration follows)

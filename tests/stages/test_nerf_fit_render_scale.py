@@ -54,15 +54,45 @@ def test_render_at_renders_labelled_frames_full_size_and_the_others_small():
                 "instance": np.zeros((h, w), np.int32), "samples_per_ray": 1.0}
 
     fn = nerf_fit.render_at(render, cam, 0.25, full_size={1})
-    for i in range(3):
-        assert fn(i)["rgb"].shape == (40, 64, 3)
+    outs = [fn(i) for i in range(3)]
+    assert all(o["rgb"].shape == (40, 64, 3) for o in outs)
     assert seen == [(0, (16, 10)), (1, (64, 40)), (2, (16, 10))]
+    # a resized render keeps its colour at the working scale (validation PSNR is measured there)
+    assert outs[0]["rgb_working"].shape == (10, 16, 3) and "rgb_working" not in outs[1]
     seen.clear()
     nerf_fit.render_at(render, cam, 1.0, full_size=set())(0)
     assert seen == [(0, (64, 40))]
 
 
-@pytest.mark.parametrize("bad", [0.0, -0.5, 1.5])
+@pytest.mark.parametrize("bad", [-0.5, 1.5])
 def test_render_scale_outside_0_1_is_refused(bad):
     with pytest.raises(ValueError, match="render_scale must be in"):
         nerf_fit.Config(render_scale=bad)
+
+
+def test_automatic_render_scale_keeps_renders_at_most_640_px_wide():
+    assert nerf_fit.Config().render_scale == 0
+    assert nerf_fit.working_scale(0, 320) == 1 and nerf_fit.working_scale(0, 640) == 1
+    assert nerf_fit.working_scale(0, 1280) == 0.5 and nerf_fit.working_scale(0, 1920) == pytest.approx(1 / 3)
+    assert nerf_fit.working_scale(0.25, 320) == 0.25  # a set scale is kept
+
+
+def test_validation_psnr_of_a_small_render_is_measured_at_its_scale():
+    from types import SimpleNamespace
+
+    from nerf.trainer import validate
+
+    # a recorded image with one-pixel texture: an exact half-size render of its area average scores high at
+    # the working scale, where the same render blown up to full size would not
+    rng = np.random.default_rng(0)
+    image = rng.integers(0, 256, (40, 64, 3)).astype(np.uint8)
+    data = SimpleNamespace(is_train=np.array([True, False]), images=np.stack([image, image]),
+                           frame_ids=np.array([10, 11]))
+    import cv2
+    small = torch.from_numpy(cv2.resize(image, (32, 20), interpolation=cv2.INTER_AREA)).float() / 255
+    res = SimpleNamespace(renders={}, val_psnr={}, samples_per_ray=0.0, render_s_per_image=0.0)
+    cam = Cam(torch.tensor([[50.0, 50.0, 32.0, 20.0]] * 2), (64, 40))
+    render = nerf_fit.render_at(lambda m, i: {"rgb": small, "samples_per_ray": 1.0}, cam, 0.5, full_size=set())
+    validate(res, data, render)
+    assert res.val_psnr[11] > 60 and "rgb_working" not in res.renders[1]
+    assert res.renders[1]["rgb"].shape == (40, 64, 3)
