@@ -5,8 +5,9 @@
 Reads what the benches and a pipeline run left on disk and prints Markdown tables, each stamped with
 the commit that measured it (`pag.commit` in a bench table's metadata; `code_version` in the evaluate
 stage's manifest record). With --readme it replaces the block between the two `results` markers of
-that file, so the README's numbers are never edited by hand. Tables that are missing are named, not
-invented.
+that file, so the README's numbers are never edited by hand. A table that is not on disk keeps the
+section the README already has (stamped with the commit that measured it: benches run on different
+machines) or, without one, is named as not measured, never invented.
 """
 from __future__ import annotations
 
@@ -118,7 +119,9 @@ def scale_section(path: Path) -> str:
     keys = ["sweep", "n_frames", "width", "height", "n_windows"]
     per = df.groupby(keys, sort=False).agg(minutes=("seconds", lambda v: v.sum() / 60),
                                            peak_rss_mb=("peak_rss_mb", "max"), psnr_db=("psnr_db", "first"),
-                                           pq=("pq", "first"), count_error_rel=("count_error_rel", "first"))
+                                           pq=("pq", "first"), count_error_rel=("count_error_rel", "first"),
+                                           **{c: (c, "first") for c in ("row_id_consistency", "diameter_median_err_m")
+                                              if c in df})
     out = [f"Scale (`pag bench scale`), commit `{table_commit(path)}`; minutes = sum of the stages' wall times, "
            f"peak memory of the process tree (Dask workers included):", "", markdown(per.reset_index())]
     ex_path = path.with_name(path.stem + "_exponents.parquet")
@@ -165,25 +168,66 @@ def generic_section(name: str, path: Path) -> str:
 SECTIONS = {"rows": family_section, "encoding": encoding_section, "render": render_section, "dask": dask_section}
 
 
-def build(data_root: Path, bench_dir: Path, seq: str, extra: list[str] = ()) -> str:
-    parts = []
-    if (bench_dir / "rows.parquet").is_file():
-        parts.append(family_section(bench_dir / "rows.parquet"))
-    if (bench_dir / "count_rules.parquet").is_file():
-        parts.append(count_rules_section(bench_dir / "count_rules.parquet"))
-    if (bench_dir / "scale.parquet").is_file():
-        parts.append(scale_section(bench_dir / "scale.parquet"))
-    parts.append(default_row_section(data_root, seq))
-    missing = []
-    for name in ["encoding", "render", "dask", *extra]:
-        path = bench_dir / f"{name}.parquet"
-        if not path.is_file():
+def heads(seq: str, extra: list[str] = ()) -> dict[str, str]:
+    """Section name -> the start of its first line (how a section is found again in an existing block)."""
+    out = {"rows": "Row family (`pag bench rows`)", "count_rules": "Counting rules (`pag bench count_rules`)",
+           "scale": "Scale (`pag bench scale`)", "default_row": f"`{seq}` (`pag all --seq {seq}`)",
+           "encoding": "Encoding (`pag bench encoding`)",
+           "render": "Occupancy skipping and early termination (`pag bench render`)",
+           "dask": "Dask workers (`pag bench dask`)"}
+    return out | {name: f"`pag bench {name}`" for name in extra if name not in out}
+
+
+def previous_sections(block: str, seq: str, extra: list[str] = ()) -> dict[str, str]:
+    """The sections of an earlier results block, by name (each with the commit it names)."""
+    starts = heads(seq, extra)
+    out: dict[str, list[str]] = {}
+    current = None
+    for line in block.splitlines():
+        hit = next((name for name, head in starts.items() if line.startswith(head)), None)
+        if hit:
+            current = hit
+            out[current] = []
+        elif line.startswith("Not measured in this checkout"):
+            current = None
+        if current:
+            out[current].append(line)
+    return {name: "\n".join(lines).strip() for name, lines in out.items()}
+
+
+def build(data_root: Path, bench_dir: Path, seq: str, extra: list[str] = (), previous: str = "") -> str:
+    """The results block from the tables on disk. A section whose table is not on disk keeps its text from
+    `previous` (an earlier block, which names the commit it was measured on), else it is listed as not
+    measured."""
+    kept = previous_sections(previous, seq, extra)
+    parts, missing = [], []
+
+    def add(name: str, path: Path, make) -> None:
+        if path.is_file():
+            parts.append(make(path))
+        elif name in kept:
+            parts.append(kept[name])
+        elif name != "default_row":
             missing.append(name)
-            continue
-        parts.append(SECTIONS.get(name, lambda p, n=name: generic_section(n, p))(path))
+        else:
+            parts.append(make(path))
+
+    add("rows", bench_dir / "rows.parquet", family_section)
+    add("count_rules", bench_dir / "count_rules.parquet", count_rules_section)
+    add("scale", bench_dir / "scale.parquet", scale_section)
+    add("default_row", data_root / "processed" / seq / "evaluation.parquet",
+        lambda _: default_row_section(data_root, seq))
+    for name in ["encoding", "render", "dask", *extra]:
+        add(name, bench_dir / f"{name}.parquet", SECTIONS.get(name, lambda p, n=name: generic_section(n, p)))
     if missing:
         parts.append("Not measured in this checkout: " + ", ".join(f"`pag bench {m}`" for m in missing) + ".")
     return "\n\n".join(parts)
+
+
+def current_block(text: str) -> str:
+    """The part of `text` between the results markers ('' without them)."""
+    i, j = text.find(START), text.find(END)
+    return text[i + len(START): j] if 0 <= i < j else ""
 
 
 def replace_block(text: str, block: str) -> str:
@@ -202,7 +246,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--extra", nargs="*", default=[], help="further bench tables to include (e.g. scale ablation)")
     p.add_argument("--readme", type=Path, default=None, help="rewrite this file's results block instead of printing")
     a = p.parse_args(argv)
-    block = build(a.data_root, a.bench_dir, a.seq, a.extra)
+    previous = current_block(a.readme.read_text()) if a.readme is not None and a.readme.is_file() else ""
+    block = build(a.data_root, a.bench_dir, a.seq, a.extra, previous)
     if a.readme is None:
         print(block)
         return 0

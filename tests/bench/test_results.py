@@ -87,3 +87,24 @@ def test_scale_section_sums_each_variant_and_shows_the_exponents(tmp_path):
     text = results.scale_section(tmp_path / "scale.parquet")
     assert "| frames | 40 | 320 | 180 | 1 | 4 | 2e+03 | 29.1 | 0.92 | -0.05 |" in text  # 240 s = 4 min
     assert "| frames | nerf_fit | 0.75 | 0.5 | 210 | 2e+03 |" in text
+
+
+def test_a_table_not_on_disk_keeps_the_readme_section_with_its_commit(tmp_path):
+    # a README whose block was generated where the encoding and render benches ran, and another default row
+    _row(tmp_path, commit="new111")
+    bench = tmp_path / "bench"
+    write_parquet(pd.DataFrame({"workers": [1], "windows": [4], "steps": [10], "wall_s": [9.0],
+                                "speedup_vs_1": [1.0]}), bench / "dask.parquet")
+    old = "\n\n".join([
+        "Encoding (`pag bench encoding`), fused permutohedral kernel, commit `old000`; ratios:\n\n| a |\n|---|\n| 1 |",
+        "`synth_x` (`pag all --seq synth_x`), commit `old000`:\n\n| metric | value |\n|---|---|\n| PQ | 0.5 |",
+        "Dask workers (`pag bench dask`), commit `old000`:\n\n| workers |\n|---|\n| 7 |",
+        "Not measured in this checkout: `pag bench render`."])
+    text = results.build(tmp_path, bench, "synth_x", previous=old)
+    assert "Encoding (`pag bench encoding`), fused permutohedral kernel, commit `old000`" in text
+    assert "| a |\n|---|\n| 1 |" in text.split("Encoding")[1]
+    # tables on disk replace their old sections; what is in neither place is named
+    assert "commit `new111`" in text and "| PQ | 0.5 |" not in text and "| 7 |" not in text
+    assert text.rstrip().endswith("Not measured in this checkout: `pag bench rows`, `pag bench count_rules`, "
+                                  "`pag bench scale`, `pag bench render`.")
+    assert results.current_block(f"x\n{results.START}\n{old}\n{results.END}\n").strip() == old
