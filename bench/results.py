@@ -60,6 +60,21 @@ ROW_METRICS = [  # (metric, scope, label, format)
 ]
 
 
+HEADS = {"rows": "Row family (`pag bench rows`)", "count_rules": "Counting rules (`pag bench count_rules`)",
+         "scale": "Scale (`pag bench scale`)", "encoding": "Encoding (`pag bench encoding`)",
+         "render": "Occupancy skipping and early termination (`pag bench render`)",
+         "dask": "Dask workers (`pag bench dask`)"}
+"""Section name -> the start of its first line (a section of an existing block is found again by it)."""
+
+
+def default_row_head(seq: str) -> str:
+    return f"`{seq}` (`pag all --seq {seq}`)"
+
+
+def generic_head(name: str) -> str:
+    return f"`pag bench {name}`"
+
+
 def default_row_section(data_root: Path, seq: str) -> str:
     proc = data_root / "processed" / seq
     ev_path, wm_path = proc / "evaluation.parquet", proc / "window_metrics.parquet"
@@ -73,7 +88,7 @@ def default_row_section(data_root: Path, seq: str) -> str:
         hit = ev[(ev.metric == metric) & (ev.scope == scope)]
         if not hit.empty:
             rows.append({"metric": label, "value": format(float(hit.value.iloc[0]), fmt)})
-    out = [f"`{seq}` (`pag all --seq {seq}`), commit `{commit}`:", "", markdown(pd.DataFrame(rows))]
+    out = [f"{default_row_head(seq)}, commit `{commit}`:", "", markdown(pd.DataFrame(rows))]
     if wm_path.is_file():
         wm = pd.read_parquet(wm_path)
         cols = [c for c in ("window_id", "n_train", "n_val", "steps", "val_psnr", "fit_s", "panoptic_fit_s",
@@ -89,7 +104,7 @@ def family_section(path: Path) -> str:
     df = pd.read_parquet(path)
     num = [c for c in df.columns if pd.api.types.is_numeric_dtype(df[c]) and c != "row"]
     show = df[["row"] + num] if "row" in df.columns else df[num]
-    head = f"Row family (`pag bench rows`), commit `{table_commit(path)}`"
+    head = f"{HEADS['rows']}, commit `{table_commit(path)}`"
     if "row" in df.columns:
         from bench._row_family import FAMILY
 
@@ -108,7 +123,7 @@ def count_rules_section(path: Path) -> str:
     runs = df[df.seq != ""][["seq", "variant", "count_pred", "count_gt", "count_error_rel", "recall", "precision",
                              "f1"]]
     verdict = df[df.seq == ""][["rule", "helps", "hurts", "verdict"]]
-    return (f"Counting rules (`pag bench count_rules`), commit `{table_commit(path)}`: each rule of fruit_count "
+    return (f"{HEADS['count_rules']}, commit `{table_commit(path)}`: each rule of fruit_count "
             f"switched off on finished rows (a rule helps a row when its F1 falls with the rule off):\n\n"
             + markdown(runs) + "\n\n" + markdown(verdict))
 
@@ -122,7 +137,7 @@ def scale_section(path: Path) -> str:
                                            pq=("pq", "first"), count_error_rel=("count_error_rel", "first"),
                                            **{c: (c, "first") for c in ("row_id_consistency", "diameter_median_err_m")
                                               if c in df})
-    out = [f"Scale (`pag bench scale`), commit `{table_commit(path)}`; minutes = sum of the stages' wall times, "
+    out = [f"{HEADS['scale']}, commit `{table_commit(path)}`; minutes = sum of the stages' wall times, "
            f"peak memory of the process tree (Dask workers included):", "", markdown(per.reset_index())]
     ex_path = path.with_name(path.stem + "_exponents.parquet")
     if ex_path.is_file():
@@ -136,7 +151,7 @@ def encoding_section(path: Path) -> str:
     df = pd.read_parquet(path)
     fused = df[df.variant == "permuto_fused"]
     show = fused[["points", "grads", "mpts_per_s", "speedup_vs_torch", "speedup_vs_cubic", "fraction_of_limit"]]
-    return (f"Encoding (`pag bench encoding`), fused permutohedral kernel, commit `{table_commit(path)}`; "
+    return (f"{HEADS['encoding']}, fused permutohedral kernel, commit `{table_commit(path)}`; "
             f"ratios are medians of interleaved repeats in one run:\n\n" + markdown(show))
 
 
@@ -150,37 +165,27 @@ def render_section(path: Path) -> str:
             {"measure": "train s per step", "skipping on": on.train_s_per_step, "off": off.train_s_per_step,
              "ratio off/on": off.train_s_per_step / on.train_s_per_step},
             {"measure": "val PSNR (dB)", "skipping on": on.val_psnr, "off": off.val_psnr, "ratio off/on": np.nan}]
-    return (f"Occupancy skipping and early termination (`pag bench render`), commit `{table_commit(path)}`:\n\n"
+    return (f"{HEADS['render']}, commit `{table_commit(path)}`:\n\n"
             + markdown(pd.DataFrame(rows)))
 
 
 def dask_section(path: Path) -> str:
     df = pd.read_parquet(path)
-    return (f"Dask workers (`pag bench dask`), commit `{table_commit(path)}`:\n\n"
+    return (f"{HEADS['dask']}, commit `{table_commit(path)}`:\n\n"
             + markdown(df[[c for c in ("workers", "windows", "steps", "wall_s", "speedup_vs_1") if c in df.columns]]))
 
 
 def generic_section(name: str, path: Path) -> str:
     df = pd.read_parquet(path)
-    return f"`pag bench {name}`, commit `{table_commit(path)}`:\n\n" + markdown(df)
+    return f"{generic_head(name)}, commit `{table_commit(path)}`:\n\n" + markdown(df)
 
 
 SECTIONS = {"rows": family_section, "encoding": encoding_section, "render": render_section, "dask": dask_section}
 
 
-def heads(seq: str, extra: list[str] = ()) -> dict[str, str]:
-    """Section name -> the start of its first line (how a section is found again in an existing block)."""
-    out = {"rows": "Row family (`pag bench rows`)", "count_rules": "Counting rules (`pag bench count_rules`)",
-           "scale": "Scale (`pag bench scale`)", "default_row": f"`{seq}` (`pag all --seq {seq}`)",
-           "encoding": "Encoding (`pag bench encoding`)",
-           "render": "Occupancy skipping and early termination (`pag bench render`)",
-           "dask": "Dask workers (`pag bench dask`)"}
-    return out | {name: f"`pag bench {name}`" for name in extra if name not in out}
-
-
 def previous_sections(block: str, seq: str, extra: list[str] = ()) -> dict[str, str]:
     """The sections of an earlier results block, by name (each with the commit it names)."""
-    starts = heads(seq, extra)
+    starts = HEADS | {"default_row": default_row_head(seq)} | {n: generic_head(n) for n in extra if n not in HEADS}
     out: dict[str, list[str]] = {}
     current = None
     for line in block.splitlines():
@@ -202,21 +207,21 @@ def build(data_root: Path, bench_dir: Path, seq: str, extra: list[str] = (), pre
     kept = previous_sections(previous, seq, extra)
     parts, missing = [], []
 
-    def add(name: str, path: Path, make) -> None:
+    def add(name: str, path: Path, make, named_when_missing: bool = True) -> None:
         if path.is_file():
             parts.append(make(path))
         elif name in kept:
             parts.append(kept[name])
-        elif name != "default_row":
+        elif named_when_missing:
             missing.append(name)
         else:
-            parts.append(make(path))
+            parts.append(make(path))  # says itself that nothing is on disk
 
     add("rows", bench_dir / "rows.parquet", family_section)
     add("count_rules", bench_dir / "count_rules.parquet", count_rules_section)
     add("scale", bench_dir / "scale.parquet", scale_section)
     add("default_row", data_root / "processed" / seq / "evaluation.parquet",
-        lambda _: default_row_section(data_root, seq))
+        lambda _: default_row_section(data_root, seq), named_when_missing=False)
     for name in ["encoding", "render", "dask", *extra]:
         add(name, bench_dir / f"{name}.parquet", SECTIONS.get(name, lambda p, n=name: generic_section(n, p)))
     if missing:

@@ -55,8 +55,8 @@ class Config:
     window."""
     threads: int = 1
     """COLMAP threads, >= 0 (0 = all cores). With one thread the poses are repeatable; with several, COLMAP's
-    mapper can register a different set of frames from run to run (a window on a loaded machine has come out
-    with 3 of 15 frames where one thread registers all). The stage's time is small beside nerf_fit's."""
+    mapper can register a different set of frames from run to run, fewer on a loaded machine. The stage's
+    time is small beside nerf_fit's."""
     seed: int = 0
     """COLMAP's random seed (RANSAC and the mapper); change it to check how much the poses depend on it."""
 

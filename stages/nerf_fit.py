@@ -195,7 +195,7 @@ def fit_one(payload: dict) -> dict:
         state["panoptic"] = pan.state()
         full = set(np.flatnonzero(frames[[c for c in ("is_center", "labelled") if c in frames]].any(axis=1)).tolist())
         validate(res, data, reporting_render(key, render_at(lambda m, i: render_panoptic(m, pan, i), res.model,
-                                                            working_scale(payload.get("render_scale", 1.0),
+                                                            working_scale(payload["render_scale"],
                                                                           res.model.wh[0]), full),
                                              data.is_train, "panoptic validation render"))
         val = [int(i) for i in np.flatnonzero(~data.is_train)]
