@@ -58,10 +58,11 @@ class PanopticAccumulator:
         pv, pv_n = np.unique(p[(p >= 0) & gt_void], return_counts=True)
         p_void.update(dict(zip(pv, pv_n)))
         both = (p >= 0) & (g >= 0)
-        pairs, inter = np.unique(np.stack([p[both], g[both]]), axis=1, return_counts=True)
+        # (pred, gt) pairs as one int64 key (segment keys are below 2^28): a 1-D unique, in (pred, gt) order
+        pair_keys, inter = np.unique(p[both] << 32 | g[both], return_counts=True)
         pa, ga = dict(zip(p_ids, p_area)), dict(zip(g_ids, g_area))
         matched_p, matched_g = set(), set()
-        for (pk, gk), n in zip(pairs.T, inter):
+        for pk, gk, n in zip(pair_keys >> 32, pair_keys & 0xFFFFFFFF, inter):
             if pk >> 20 != gk >> 20:
                 continue
             union = pa[pk] + ga[gk] - n - p_void[pk]

@@ -64,16 +64,17 @@ class Config:
     to full size (colour bilinear; depth and labels nearest, so no depth or label is invented between two
     surfaces). Labelled frames (the window's centre included) are always rendered at full size, so the
     evaluated frames keep their detail. 1 = full size (no resizing); 0 = automatic: the largest scale whose
-    renders are at most RENDER_WIDTH (640) pixels wide (1 up to 640x360, 0.5 at 1280x720), since full-size
-    renders of large images cost more than the fit. Validation PSNR is measured at the scale each frame was
-    rendered at (the recorded image area-averaged to that size)."""
+    renders are at most RENDER_WIDTH (320) pixels wide (1 up to 320x180, 0.5 at 640x360, 0.25 at 1280x720):
+    a window renders every other frame of its span, so at 0.5 the renders of a 1280x720 window cost about as
+    much as its colour fit. Validation PSNR is measured at the scale each frame was rendered at (the recorded image
+    area-averaged to that size)."""
 
     def __post_init__(self) -> None:
         if not 0 <= self.render_scale <= 1:
             raise ValueError(f"nerf_fit.render_scale must be in [0, 1] (0 = automatic), got {self.render_scale}")
 
 
-RENDER_WIDTH = 640
+RENDER_WIDTH = 320
 """Width (pixels) of the working renders with nerf_fit.render_scale = 0 (automatic)."""
 
 

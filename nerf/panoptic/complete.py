@@ -60,9 +60,10 @@ def complete_instances(frames: list[dict], intrinsics: np.ndarray, c2w: np.ndarr
     ids = np.array(list(spheres))
     centres = np.stack([spheres[i][0] for i in ids])                    # [S, 3]
     radii = np.array([spheres[i][1] for i in ids])                      # [S]
+    reach = radii + cfg.complete_margin_m     # nothing outside this ball around a centre is claimed
     added = 0
     for f, depth, k, pose in zip(frames, depths, intrinsics, c2w):
-        v, u = np.nonzero((f["instance"] == 0) & (depth > 0))
+        v, u = np.nonzero((f["instance"] == 0) & (depth > 0) & near_spheres(depth.shape, k, pose, centres, reach))
         if not len(v):
             continue
         p = unproject(depth, k, pose, v, u)                             # [P, 3]
@@ -83,6 +84,29 @@ def complete_instances(frames: list[dict], intrinsics: np.ndarray, c2w: np.ndarr
         f["semantic"][vv, uu] = [klass[int(i)] for i in who]
         added += int(hit.sum())
     return added
+
+
+def near_spheres(hw: tuple[int, int], k: np.ndarray, c2w: np.ndarray, centres: np.ndarray,
+                 radii: np.ndarray) -> np.ndarray:
+    """[H, W] bool: the pixels whose ray can meet one of the balls (centres [S, 3], radii [S]) in front of the
+    camera: the union of the image boxes of the balls' bounding cubes (the whole image for a cube that
+    reaches behind the camera). A point of a ball in front of the camera projects inside its box, so the
+    pixels outside every box can be skipped without changing any result."""
+    h, w = hw
+    mask = np.zeros((h, w), bool)
+    cam = (centres - c2w[:3, 3]) @ c2w[:3, :3]                          # [S, 3] centres in the camera frame
+    corners = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], np.float64)
+    for c, r in zip(cam, radii):
+        if c[2] - r <= 1e-6:
+            return np.ones((h, w), bool)
+        q = c + corners * r                                             # [8, 3], all in front
+        u = k[0] * q[:, 0] / q[:, 2] + k[2] - 0.5                       # pixel index of the projection
+        v = k[1] * q[:, 1] / q[:, 2] + k[3] - 0.5
+        u0, u1 = max(0, int(np.floor(u.min())) - 1), min(w, int(np.ceil(u.max())) + 2)
+        v0, v1 = max(0, int(np.floor(v.min())) - 1), min(h, int(np.ceil(v.max())) + 2)
+        if u0 < u1 and v0 < v1:
+            mask[v0:v1, u0:u1] = True
+    return mask
 
 
 def rays_through_core(depth: np.ndarray, k: np.ndarray, c2w: np.ndarray, v: np.ndarray, u: np.ndarray,

@@ -46,7 +46,8 @@ class KeptSamples:
 
 def weighted_samples(model: NerfModel, o: Tensor, d: Tensor, min_weight: float, round_samples: int = 32,
                      keep_grad_features: bool = False) -> KeptSamples:
-    """March rays through the frozen colour model in rounds with early termination (as rendering does)
+    """March rays through the frozen colour model in rounds with early termination, as rendering does (8, 16,
+    then `round_samples` occupied samples per ray: most rays meet an opaque surface within their first few),
     and keep the samples with weight >= min_weight."""
     n = o.shape[0]
     dev = o.device
@@ -62,10 +63,12 @@ def weighted_samples(model: NerfModel, o: Tensor, d: Tensor, min_weight: float, 
     n_eval = 0
     with torch.no_grad():
         rounds = Rounds(o, d, edges, occ)
-    r = 0
+    first = 0
     while active.numel():
+        per_ray = min(round_samples, 8 << min(first // 8, 2)) if cfg.skip_empty else round_samples
         with torch.no_grad():
-            s = rounds.take(active, r * round_samples, round_samples)
+            s = rounds.take(active, first, per_ray)
+        first += per_ray
         if len(s) == 0:
             break
         with torch.set_grad_enabled(keep_grad_features):
@@ -77,7 +80,7 @@ def weighted_samples(model: NerfModel, o: Tensor, d: Tensor, min_weight: float, 
             rgb.index_add_(0, ray, w[:, None] * col.detach())
             depth.index_add_(0, ray, w * s.t_mid)
             keep = w >= min_weight
-            had = torch.bincount(s.ray_index, minlength=s.n_rays) >= round_samples
+            had = torch.bincount(s.ray_index, minlength=s.n_rays) >= per_ray
             trans[active] = trans[active] * left
         xs.append(model.scene.normalise(x.detach()[keep]))
         gs.append(g[keep] if keep_grad_features else g.detach()[keep])
@@ -85,7 +88,6 @@ def weighted_samples(model: NerfModel, o: Tensor, d: Tensor, min_weight: float, 
         rs.append(ray[keep])
         n_eval += len(s)
         active = active[had & (trans[active] > eps)]
-        r += 1
     opacity = 1 - trans
     width = model.field.feature_dim
     cat = lambda parts, shape: torch.cat(parts) if parts else torch.zeros(shape, device=dev)  # noqa: E731

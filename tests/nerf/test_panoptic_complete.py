@@ -4,7 +4,7 @@ from dataclasses import replace
 import numpy as np
 
 from nerf.config import PanopticConfig
-from nerf.panoptic.complete import complete_instances, rays_through_core
+from nerf.panoptic.complete import complete_instances, near_spheres, rays_through_core
 
 
 def _sphere_view(centre: np.ndarray, radius: float, cam_x: float, h: int = 40, w: int = 60
@@ -87,3 +87,27 @@ def test_completion_by_ray_takes_a_rim_whose_depth_fell_behind_but_not_the_wall_
     assert (last["instance"][taken] == 7).all() and (last["semantic"][taken] == 2).all()
     assert (last["instance"][lost & rim] == 0).all() and (last["instance"][leaf] == 0).all()
     assert (last["instance"][truth == 0] == 0).all()                # the wall around the fruit stays stuff
+
+
+def test_near_spheres_keeps_every_pixel_whose_ray_meets_a_ball_and_drops_far_pixels():
+    rng = np.random.default_rng(3)
+    h, w = 60, 80
+    k = np.array([60.0, 55.0, 41.0, 28.0])
+    ang = 0.3
+    c2w = np.eye(4)
+    c2w[:3, :3] = [[np.cos(ang), 0, np.sin(ang)], [0, 1, 0], [-np.sin(ang), 0, np.cos(ang)]]
+    c2w[:3, 3] = [0.1, -0.05, 0.2]
+    centres = c2w[:3, 3] + rng.uniform([-0.4, -0.3, 0.3], [0.4, 0.3, 1.0], (5, 3)) @ c2w[:3, :3].T
+    radii = rng.uniform(0.02, 0.06, 5)
+    mask = near_spheres((h, w), k, c2w, centres, radii)
+    v, u = np.mgrid[0:h, 0:w]
+    d = np.stack([(u + 0.5 - k[2]) / k[0], (v + 0.5 - k[3]) / k[1], np.ones((h, w))], -1) @ c2w[:3, :3].T
+    d /= np.linalg.norm(d, axis=-1, keepdims=True)
+    oc = centres - c2w[:3, 3]                                       # [S, 3]
+    along = d @ oc.T                                                # [H, W, S]
+    dist2 = (oc ** 2).sum(1) - along ** 2
+    meets = ((dist2 <= radii ** 2) & (along > 0)).any(-1)
+    assert meets.any() and (mask[meets]).all()                      # conservative: no meeting pixel is lost
+    assert mask.mean() < 0.6                                        # and most of the image is skipped
+    behind = np.vstack([centres, c2w[:3, 3] + 0.01])                # a ball around the camera: every pixel
+    assert near_spheres((h, w), k, c2w, behind, np.append(radii, 0.05)).all()

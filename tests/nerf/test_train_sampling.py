@@ -48,3 +48,21 @@ def test_progressive_render_rounds_match_one_big_round(short_fit):
     ref = accumulate(col, w, sm.ray_index, sm.n_rays)
     assert torch.allclose(a["rgb"], ref, atol=3e-3) and torch.allclose(a["opacity"], 1 - left, atol=3e-3)
     assert float(a["samples_per_ray"]) <= len(sm) / len(u) + 1e-6        # (a float32 count per ray)
+
+
+def test_the_panoptic_pass_marches_the_rounds_of_the_colour_render(short_fit):
+    """weighted_samples (what the panoptic heads see) takes the same progressive rounds as render_rays: the same
+    colour, depth and evaluated samples, and every kept sample carries at least min_weight."""
+    from nerf.panoptic.samples import weighted_samples
+    from nerf.render import pixel_rays
+
+    m = short_fit.model
+    k, c2w = m.intrinsics[1], m.poses_c2w[1]
+    v, u = torch.meshgrid(torch.arange(0, 24, 2) + 0.5, torch.arange(0, 40, 2) + 0.5, indexing="ij")
+    o, d = pixel_rays(k.expand(u.numel(), 4), c2w.expand(u.numel(), 4, 4), u.reshape(-1), v.reshape(-1))
+    ref = m.render_rays(o, d)
+    ks = weighted_samples(m, o, d, min_weight=1e-2)
+    assert torch.allclose(ks.rgb, ref["rgb"], atol=1e-5)
+    assert torch.allclose(ks.opacity, ref["opacity"], atol=1e-5)
+    assert ks.n_evaluated == round(float(ref["samples_per_ray"]) * u.numel())
+    assert len(ks.w) > 0 and float(ks.w.min()) >= 1e-2

@@ -70,10 +70,11 @@ def test_render_scale_outside_0_1_is_refused(bad):
         nerf_fit.Config(render_scale=bad)
 
 
-def test_automatic_render_scale_keeps_renders_at_most_640_px_wide():
+def test_automatic_render_scale_keeps_renders_at_most_320_px_wide():
     assert nerf_fit.Config().render_scale == 0
-    assert nerf_fit.working_scale(0, 320) == 1 and nerf_fit.working_scale(0, 640) == 1
-    assert nerf_fit.working_scale(0, 1280) == 0.5 and nerf_fit.working_scale(0, 1920) == pytest.approx(1 / 3)
+    assert nerf_fit.working_scale(0, 160) == 1 and nerf_fit.working_scale(0, 320) == 1
+    assert nerf_fit.working_scale(0, 640) == 0.5 and nerf_fit.working_scale(0, 1280) == 0.25
+    assert nerf_fit.working_scale(0, 1920) == pytest.approx(1 / 6)
     assert nerf_fit.working_scale(0.25, 320) == 0.25  # a set scale is kept
 
 
