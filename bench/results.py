@@ -63,7 +63,7 @@ ROW_METRICS = [  # (metric, scope, label, format)
 HEADS = {"rows": "Row family (`pag bench rows`)", "count_rules": "Counting rules (`pag bench count_rules`)",
          "scale": "Scale (`pag bench scale`)", "encoding": "Encoding (`pag bench encoding`)",
          "render": "Occupancy skipping and early termination (`pag bench render`)",
-         "dask": "Dask workers (`pag bench dask`)"}
+         "dask": "Dask workers (`pag bench dask`)", "real_row": "Real-size row (`pag bench real_row`)"}
 """Section name -> the start of its first line (a section of an existing block is found again by it)."""
 
 
@@ -147,6 +147,22 @@ def scale_section(path: Path) -> str:
     return "\n".join(out)
 
 
+def real_row_section(path: Path) -> str:
+    """`pag bench real_row`: the row's size and quality, then the cost of each stage (with the commit that ran
+    it: a stage that was up to date keeps the time of the run that made its outputs)."""
+    df = pd.read_parquet(path)
+    first = df.iloc[0]
+    quality = [c for c in ("count_gt", "count_pred", "count_error_rel", "recall", "precision", "row_id_consistency",
+                           "pq", "pq_detector", "miou", "diameter_median_err_m", "psnr_db") if c in df]
+    size = (f"{int(first.width)}x{int(first.height)}, {int(first.n_frames)} frames, {int(first.n_windows)} "
+            f"windows")
+    return "\n".join([
+        f"{HEADS['real_row']}, table written at commit `{table_commit(path)}` ({size}); peak memory of the "
+        f"process tree (Dask workers included); `after_synth` = what a recorded row costs:", "",
+        markdown(df[["stage", "minutes", "peak_rss_mb", "code_version"]]), "", "Quality:", "",
+        markdown(df[quality].iloc[:1])])
+
+
 def encoding_section(path: Path) -> str:
     df = pd.read_parquet(path)
     fused = df[df.variant == "permuto_fused"]
@@ -220,6 +236,7 @@ def build(data_root: Path, bench_dir: Path, seq: str, extra: list[str] = (), pre
     add("rows", bench_dir / "rows.parquet", family_section)
     add("count_rules", bench_dir / "count_rules.parquet", count_rules_section)
     add("scale", bench_dir / "scale.parquet", scale_section)
+    add("real_row", bench_dir / "real_row.parquet", real_row_section)
     add("default_row", data_root / "processed" / seq / "evaluation.parquet",
         lambda _: default_row_section(data_root, seq), named_when_missing=False)
     for name in ["encoding", "render", "dask", *extra]:

@@ -12,6 +12,7 @@ from scipy.optimize import least_squares
 from scipy.stats import binom
 
 import schemas
+from nerf.config import BASE_PIXELS
 from nerf.geometry import pose_matrix
 from pipeline.classes import DEFAULT_CLASSES, THING_IDS, class_name
 from pipeline.images import ImageError, read_label
@@ -54,8 +55,11 @@ class Config:
     """fused frames, >= 1. A fruit seen in fewer is a fragment (a stray piece of a slot, a one-frame
     duplicate): listed in fruits.parquet with counted = false, not counted. 1 = count every fruit seen."""
     min_count_points: int = 100
-    """points, >= 0: a fruit with fewer 3D points over the row is a fragment too (counted = false). Scale it
-    with the image resolution (points per fruit grow with the pixels it covers)."""
+    """points, >= 0: a fruit with fewer 3D points over the row is a fragment too (counted = false); so is one
+    with fewer pixels of rendered depth over its fused frames, each frame's pixels counted as in a 320x180
+    image (nerf.config.BASE_PIXELS; x 1/16 at 1280x720). The second part keeps the rule's meaning at every
+    image size: a fruit covers 16 times the pixels at 1280x720, and its points are capped per frame
+    (max_points_per_view). Up to 320x180 it is implied by the first."""
     detector_cover: float = 0.3
     """share in (0, 1]: a fused frame confirms a fruit when the detector's thing segments of that frame cover at
     least this share of the fruit's pixels there (the detector is not the NeRF's input on validation frames, so
@@ -117,6 +121,18 @@ def fit_spheroid(points: np.ndarray) -> tuple[np.ndarray, float, float]:
 
     x = least_squares(resid, x0, loss="soft_l1", f_scale=0.003, max_nfev=100).x
     return x[:3] + mu, 2 * abs(float(x[3])), 2 * abs(float(x[4]))
+
+
+def reference_pixels(n_pixels: int, image_pixels: int) -> float:
+    """`n_pixels` of an image of `image_pixels` pixels counted as in a 320x180 image (nerf.config.BASE_PIXELS):
+    scaled down for larger images, never up."""
+    return n_pixels * min(1.0, BASE_PIXELS / image_pixels)
+
+
+def is_fragment(n_frames: int, n_points: int, ref_pixels: float, cfg: Config) -> bool:
+    """A fruit seen in under cfg.min_count_frames fused frames, or with under cfg.min_count_points inlier points
+    or reference pixels (reference_pixels summed over its fused frames): not counted."""
+    return n_frames < cfg.min_count_frames or min(n_points, ref_pixels) < cfg.min_count_points
 
 
 def measure(points: np.ndarray, cfg: Config) -> dict:
@@ -184,6 +200,7 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
     votes: dict[int, list[int]] = defaultdict(list)
     depths: dict[int, list[np.ndarray]] = defaultdict(list)
     seen: dict[int, list[int]] = defaultdict(list)
+    ref_px: dict[int, float] = defaultdict(float)  # pixels with rendered depth, scaled to a BASE_PIXELS image
     checked: dict[int, int] = defaultdict(int)      # fused frames with a detector image, per fruit
     confirmed: dict[int, int] = defaultdict(int)    # ... of them where the detector's segments cover the fruit
     for r in ctx.progress(pf.itertuples(index=False), "unproject fruits", total=len(pf)):
@@ -216,6 +233,7 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
             d = depth[vv, uu]
             good = d > 0
             seen[fruit].append(fid)
+            ref_px[fruit] += reference_pixels(int(good.sum()), inst.size)
             if det is not None:
                 checked[fruit] += 1
                 confirmed[fruit] += int(np.mean(det[vv, uu] > 0) >= cfg.detector_cover)
@@ -243,8 +261,8 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
         rows.append({"fruit_id": fruit, "class_id": cls, "class_name": class_name(cls),
                      "class_confidence": float(np.mean(v == cls)), **m, "median_depth_m": med_depth,
                      "near_row": near_row, "n_frames": n_frames,
-                     "counted": bool(near_row and n_frames >= cfg.min_count_frames
-                                     and m["n_points"] >= cfg.min_count_points and not unconfirmed),
+                     "counted": bool(near_row and not unconfirmed
+                                     and not is_fragment(n_frames, m["n_points"], ref_px[fruit], cfg)),
                      "n_confirmed_frames": confirmed.get(fruit, 0) if fruit in checked else None,
                      "detector_p": p_real,
                      "n_windows": int(n_windows.get(fruit, 1)), "first_frame_id": min(seen[fruit]),
@@ -279,7 +297,7 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
                  f"{cfg.detector_alpha:g}): in fruits.parquet with counted = false")
     if n_frag:
         ctx.note(f"{n_frag} near-row fruits not counted: fragments (under {cfg.min_count_frames} fused frames or "
-                 f"under {cfg.min_count_points} points) or unconfirmed by the detector; counted = false")
+                 f"under {cfg.min_count_points} points or pixels at 320x180) or unconfirmed by the detector; counted = false")
     ctx.summary.update(fruits=len(fruits), counted=len(near), far_row=n_far, fragments=n_frag, unconfirmed=len(unconf),
                        **{f"count_{c}": int(n) for c, n in zip(counts.class_name, counts["count"])})
     return {"fruits": fruits, "counts": counts}

@@ -89,6 +89,24 @@ def test_scale_section_sums_each_variant_and_shows_the_exponents(tmp_path):
     assert "| frames | nerf_fit | 0.75 | 0.5 | 210 | 2e+03 |" in text
 
 
+def test_real_row_table_sums_the_stages_with_and_without_synthesis_and_the_section_shows_them(tmp_path):
+    from bench import real_row
+
+    stages = pd.DataFrame({"stage": ["synth", "ingest", "nerf_fit"], "seconds": [540.0, 60.0, 1800.0],
+                           "peak_rss_mb": [1500.0, 1400.0, 6000.0], "code_version": ["aaa", "aaa", "bbb"]})
+    df = real_row.table(stages, {"n_frames": 450, "width": 1280, "height": 720, "n_windows": 13},
+                        {"count_gt": 70.0, "count_pred": 69.0, "pq": 0.9})
+    tot = df.set_index("stage")
+    assert tot.loc["total", "seconds"] == 2400 and tot.loc["total", "peak_rss_mb"] == 6000
+    assert tot.loc["after_synth", "seconds"] == 1860 and tot.loc["after_synth", "minutes"] == 31
+    assert (df.n_windows == 13).all() and (df.pq == 0.9).all()
+    write_parquet(df, tmp_path / "real_row.parquet")
+    text = results.real_row_section(tmp_path / "real_row.parquet")
+    assert "1280x720, 450 frames, 13 windows" in text
+    assert "| nerf_fit | 30 | 6e+03 | bbb |" in text and "| after_synth | 31 | 6e+03 |  |" in text
+    assert "| 70 | 69 | 0.9 |" in text
+
+
 def test_a_table_not_on_disk_keeps_the_readme_section_with_its_commit(tmp_path):
     # a README whose block was generated where the encoding and render benches ran, and another default row
     _row(tmp_path, commit="new111")
@@ -106,5 +124,5 @@ def test_a_table_not_on_disk_keeps_the_readme_section_with_its_commit(tmp_path):
     # tables on disk replace their old sections; what is in neither place is named
     assert "commit `new111`" in text and "| PQ | 0.5 |" not in text and "| 7 |" not in text
     assert text.rstrip().endswith("Not measured in this checkout: `pag bench rows`, `pag bench count_rules`, "
-                                  "`pag bench scale`, `pag bench render`.")
+                                  "`pag bench scale`, `pag bench real_row`, `pag bench render`.")
     assert results.current_block(f"x\n{results.START}\n{old}\n{results.END}\n").strip() == old

@@ -496,3 +496,21 @@ def test_fruit_centres_are_moved_into_the_ground_truth_frame_through_a_frame_tha
     moved = evaluate.to_ground_truth_frame(fruits, frames, gt)
     np.testing.assert_allclose(moved, [[0.2, 0.5, 0.1], [1.2, 0.5, 0.1]], atol=1e-9)
     np.testing.assert_allclose(evaluate.to_ground_truth_frame(fruits, frames, None), fruits[["x_m", "y_m", "z_m"]])
+
+
+def test_the_fragment_rule_means_the_same_at_every_image_size():
+    cfg = fruit_count.Config(min_count_frames=2, min_count_points=100)
+    # a sliver of 150 px in each of 3 frames, its points capped per frame: at 320x180 a fruit, at 1280x720 the
+    # same sliver covers 16 times the pixels and points, and is still a fruit
+    small = sum(fruit_count.reference_pixels(150, 320 * 180) for _ in range(3))
+    large = sum(fruit_count.reference_pixels(150 * 16, 1280 * 720) for _ in range(3))
+    assert small == large == 450
+    assert not fruit_count.is_fragment(3, 450, small, cfg) and not fruit_count.is_fragment(3, 1800, large, cfg)
+    # a stray piece of 30 px per frame at 320x180 is a fragment; at 1280x720 (480 px per frame, 1440 points)
+    # its points alone would pass, its reference pixels do not
+    stray = sum(fruit_count.reference_pixels(480, 1280 * 720) for _ in range(3))
+    assert stray == 90 and fruit_count.is_fragment(3, 1440, stray, cfg)
+    assert fruit_count.is_fragment(3, 90, 90.0, cfg)
+    # images smaller than 320x180 are not scaled up; too few frames or points stay fragments
+    assert fruit_count.reference_pixels(100, 64 * 40) == 100
+    assert fruit_count.is_fragment(1, 5000, 5000.0, cfg) and fruit_count.is_fragment(5, 60, 5000.0, cfg)
