@@ -10,7 +10,7 @@ from torch import Tensor
 from nerf.config import NerfConfig, config_from_state
 from nerf.fields import Field, build_field
 from nerf.occupancy import OccupancyGrid
-from nerf.render import Rounds, Samples, accumulate, composite_weights, cone_steps, pixel_rays
+from nerf.render import Rounds, Samples, accumulate, composite_weights, cone_steps, pixel_rays, round_size
 from nerf.window import Scene
 
 
@@ -80,7 +80,7 @@ class NerfModel:
         first = 0
         rounds = Rounds(o, d, edges, occ)
         while active.numel():
-            per_ray = min(round_samples, 8 << min(first // 8, 2)) if self.cfg.skip_empty else round_samples
+            per_ray = round_size(first, round_samples, self.cfg.skip_empty)
             s = rounds.take(active, first, per_ray)
             first += per_ray
             if len(s) == 0:

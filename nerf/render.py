@@ -114,6 +114,13 @@ def march(origins: Tensor, dirs: Tensor, edges: Tensor, occupied_fn, jitter: boo
     return _packed(ray_index, col, t, edges, dirs)
 
 
+def round_size(first: int, round_samples: int, skip_empty: bool) -> int:
+    """Occupied samples per ray of the rendering round that starts at rank `first`: 8, 16, then `round_samples`
+    (most rays meet an opaque surface within their first few occupied samples); `round_samples` throughout
+    without empty-space skipping, where the first samples are rarely the surface."""
+    return min(round_samples, 8 << min(first // 8, 2)) if skip_empty else round_samples
+
+
 class Rounds:
     """The occupied mid-point samples of a ray batch, taken in rounds (rendering with early termination):
     take(rows, first, n) = the samples ranked [first, first + n) of the rays `rows`, ray_index into rows.

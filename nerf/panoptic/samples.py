@@ -10,7 +10,7 @@ from torch import Tensor
 from nerf.config import PanopticConfig
 from nerf.model import NerfModel
 from nerf.panoptic.heads import PanopticField, integrate_probs
-from nerf.render import Rounds, composite_weights
+from nerf.render import Rounds, composite_weights, round_size
 
 
 def panoptic_field(model: NerfModel, cfg: PanopticConfig, n_slots: int) -> PanopticField:
@@ -65,7 +65,7 @@ def weighted_samples(model: NerfModel, o: Tensor, d: Tensor, min_weight: float, 
         rounds = Rounds(o, d, edges, occ)
     first = 0
     while active.numel():
-        per_ray = min(round_samples, 8 << min(first // 8, 2)) if cfg.skip_empty else round_samples
+        per_ray = round_size(first, round_samples, cfg.skip_empty)
         with torch.no_grad():
             s = rounds.take(active, first, per_ray)
         first += per_ray
