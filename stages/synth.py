@@ -30,14 +30,16 @@ TOPICS = {"color": "/camera/color/image_raw", "depth": "/camera/aligned_depth_to
 
 PRESETS: dict[str, dict[str, int | float | bool]] = {
     "small": {"n_frames": 120, "width": 320, "height": 180, "fps": 15.0, "speed_m_per_s": 0.2, "n_labelled": 3,
-              "write_bag": True},
+              "write_bag": True, "supersample": 2},
     "bup20": {"n_frames": 450, "width": 1280, "height": 720, "fps": 15.0, "speed_m_per_s": 0.2, "n_labelled": 5,
-              "write_bag": False},
+              "write_bag": False, "supersample": 1},
 }
 """Row sizes: `small` is the default row (1.6 m, 3 labelled frames); `bup20` has the size of a BUP20 /
 RealSense recording: 1280x720 at 15 fps and 0.2 m/s, 450 frames = 6 m of row, a labelled frame every
 metre (frames 75, 150, ..., 374: one metre from either end, so a window of +-40 frames fits around each).
-The bup20 row writes no bag by default: its uncompressed images would be about 4.6 MB a frame (2 GB)."""
+The bup20 row writes no bag by default: its uncompressed images would be about 4.6 MB a frame (2 GB), and casts
+one ray per pixel (supersample 1: a 1280x720 pixel is a quarter of a 640x360 one, so the camera's own blur
+matters more than aliasing; it halves the ray casting)."""
 
 
 @dataclass(frozen=True)
@@ -108,10 +110,10 @@ class Config:
     n_labelled: int | None = None
     """ground-truth labelled frames (annotations.json, seg/), evenly spread, never the first or last frame
     (None = the preset's)."""
-    supersample: int = 2
+    supersample: int | None = None
     """colour anti-aliasing: 1 = the pixel-centre ray only; 2 = centre plus the 4 pixel corners shared with the
     neighbours (quincunx, about 2 rays per pixel); s >= 3 = an s x s grid per pixel. Depth and labels always
-    come from the pixel-centre ray."""
+    come from the pixel-centre ray (None = the preset's: 2 for small, 1 for bup20)."""
     detections_format: Literal["png_pair", "coco_panoptic", "coco_instances"] = "png_pair"
     """format of the detector output in pred_seg/: the project's PNG pair + scores.csv, COCO panoptic (JSON + PNG
     folder, as Detectron2 / Mask2Former write it) or COCO instance results (RLE masks + semantic PNGs for the

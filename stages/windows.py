@@ -26,10 +26,15 @@ OUTPUTS = ("windows",)
 
 @dataclass(frozen=True)
 class Config:
-    half_width: int = 20
+    half_width: int = 30
     """frames, >= 1, on each side of the centre frame (clipped at the sequence ends): a window holds up to
-    2 * half_width + 1 frames. Wider windows give each fruit more views and cost more time per fit; the
-    window should span about as far as the camera moves while a fruit crosses the image."""
+    2 * half_width + 1 frames. The window should span about as far as the camera moves while a fruit crosses
+    the image, so that a fruit at its centre is seen from one image border to the other: 2 * half_width + 1
+    ~ 2 * d * tan(fov_x / 2) * fps / v for a camera d metres from the row with horizontal field of view fov_x,
+    moving at v m/s. The default, 30, is that rule for a RealSense-like camera (69 degrees) 0.6 m from the row
+    at 15 fps and 0.2 m/s (0.83 m of row, 62 frames). Wider windows give each fruit more views and cost more
+    time per fit (the colour fit's steps are fixed, its renders grow with the frames); sparser labelled frames
+    need fewer filler windows."""
     max_windows: int = 0
     """keep at most this many windows, evenly spread (0 = all). For quick runs; a subset leaves stretches of
     the row uncovered, so cover_row is ignored then."""
