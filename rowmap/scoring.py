@@ -5,9 +5,23 @@ from __future__ import annotations
 import numpy as np
 
 from nerf.panoptic_metrics import ConfusionAccumulator, PanopticAccumulator, dominant_ids, id_consistency, id_failures
+from nerf.config import BASE_PIXELS
 from pipeline.classes import DEFAULT_CLASSES, N_CLASSES, THING_IDS
 
 STUFF_IDS = tuple(c.id for c in DEFAULT_CLASSES if not c.is_thing)
+
+
+def reference_pixels(n_pixels: int | np.ndarray, image_pixels: int | np.ndarray) -> float | np.ndarray:
+    """`n_pixels` of an image of `image_pixels` pixels counted as in a 320x180 image (nerf.config.BASE_PIXELS):
+    scaled down for larger images, never up. A fruit covers the same reference pixels at every image size
+    (the same share of the view), so a rule in reference pixels means the same at 320x180 and 1280x720."""
+    return n_pixels * np.minimum(1.0, BASE_PIXELS / np.asarray(image_pixels, np.float64))
+
+
+def image_pixels_for(reference_px: int, image_pixels: int) -> int:
+    """The pixel count of an image of `image_pixels` pixels that `reference_px` reference pixels stand for
+    (the inverse of reference_pixels, rounded up): a threshold in reference pixels for one image."""
+    return int(np.ceil(reference_px * max(1.0, image_pixels / BASE_PIXELS) - 1e-9))
 
 
 def thing_instances(sem: np.ndarray, inst: np.ndarray) -> np.ndarray:
@@ -16,7 +30,9 @@ def thing_instances(sem: np.ndarray, inst: np.ndarray) -> np.ndarray:
 
 
 class PanopticScore:
-    """PQ / SQ / RQ, mIoU and fruit-ID consistency of one set of (pred, gt) panoptic images."""
+    """PQ / SQ / RQ, mIoU and fruit-ID consistency of one set of (pred, gt) panoptic images. A fruit takes
+    part in the ID consistency of a frame where it shows at least `min_visible_px` reference pixels
+    (reference_pixels: pixels as in a 320x180 image)."""
 
     def __init__(self, min_visible_px: int = 1) -> None:
         self.min_visible_px = min_visible_px
@@ -29,7 +45,8 @@ class PanopticScore:
                fruit_ids: np.ndarray) -> None:
         self.pq.update(p_sem, p_inst, g_sem, g_inst)
         self.conf.update(p_sem, g_sem)
-        self.ids.append(dominant_ids(g_inst, thing_instances(p_sem, p_inst), fruit_ids, min_px=self.min_visible_px))
+        self.ids.append(dominant_ids(g_inst, thing_instances(p_sem, p_inst), fruit_ids,
+                                     min_px=image_pixels_for(self.min_visible_px, g_inst.size)))
         self.n += 1
 
     def metrics(self, min_frames: int, suffix: str = "") -> dict[str, float]:

@@ -15,7 +15,7 @@ from pipeline.classes import THING_IDS, VOID
 from pipeline.images import read_label
 from pipeline.stage import StageContext
 from rowmap.renders import Renders
-from rowmap.scoring import PanopticScore
+from rowmap.scoring import PanopticScore, image_pixels_for
 
 INPUTS = ("raw", "frames", "windows", "window_poses", "window_metrics", "nerf", "renders", "gt_segments",
           "panoptic_frames", "panoptic", "fruits", "counts")
@@ -41,10 +41,11 @@ class Config:
     """frames, >= 1: fruits seen in at least this many frames are scored for ID consistency (and count as
     countable ground truth, count_gt)."""
     min_visible_px: int = 12
-    """pixels, >= 1. ID consistency: a ground-truth fruit counts as visible in a frame with at least this many
-    pixels. Keep it at nerf_fit.panoptic.min_segment_px: the panoptic post-processing removes rendered segments
-    below that size (and the detector drops segments that small), so a fruit showing fewer pixels cannot carry
-    an id."""
+    """reference pixels (as in a 320x180 image: x16 at 1280x720), >= 1. ID consistency: a ground-truth fruit
+    counts as visible in a frame where it covers at least this many; count_gt counts the fruits visible so in
+    min_frames_id frames. Keep it at nerf_fit.panoptic.min_segment_px: the panoptic post-processing removes
+    rendered segments below that size at the working scale (at most 320 px wide), so a fruit showing fewer
+    cannot carry an id. In reference pixels the rule means the same share of the view at every image size."""
 
     def __post_init__(self) -> None:
         if not self.match_max_distance_m > 0:
@@ -182,12 +183,14 @@ def to_ground_truth_frame(fruits: pd.DataFrame, frames: pd.DataFrame, gt_poses: 
     return np.einsum("fij,fj->fi", rel[:, :3, :3], xyz) + rel[:, :3, 3]
 
 
-def countable_fruits(gt_segments: pd.DataFrame, near_ids: set[int], cfg: Config) -> list[int]:
+def countable_fruits(gt_segments: pd.DataFrame, near_ids: set[int], image_pixels: int, cfg: Config) -> list[int]:
     """Ground-truth near-row fruits the recording shows well enough to count: at least cfg.min_visible_px
-    pixels (kept by the depth filter) in at least cfg.min_frames_id frames of the row, the population the
-    ID consistency is scored on. A fruit glimpsed in one or two frames at the start or end of the recording
-    is left out (count_gt_near_row_all and count_error_rel_all include it)."""
-    seg = gt_segments[gt_segments.kept.astype(bool) & (gt_segments.area_px >= cfg.min_visible_px)]
+    reference pixels (kept by the depth filter; images of `image_pixels` pixels) in at least
+    cfg.min_frames_id frames of the row, the population the ID consistency is scored on. A fruit glimpsed in
+    one or two frames at the start or end of the recording is left out (count_gt_near_row_all and
+    count_error_rel_all include it)."""
+    seg = gt_segments[gt_segments.kept.astype(bool) &
+                      (gt_segments.area_px >= image_pixels_for(cfg.min_visible_px, image_pixels))]
     frames = seg.groupby("instance_id").frame_id.nunique()
     return sorted(int(i) for i, n in frames.items() if n >= cfg.min_frames_id and int(i) in near_ids)
 
@@ -209,7 +212,8 @@ def row_scores(inputs: dict, gt: GroundTruth, gt_fruits: pd.DataFrame | None, gt
         fruits = inputs["fruits"]
         pred = fruits[fruits.counted.astype(bool)]
         near_ids = set(gt_fruits.loc[gt_fruits.near_row.astype(bool), "fruit_id"].astype(int))
-        seen = countable_fruits(inputs["gt_segments"], near_ids, cfg)
+        image_px = int(gt.frames.width.max()) * int(gt.frames.height.max())
+        seen = countable_fruits(inputs["gt_segments"], near_ids, image_px, cfg)
         g = gt_fruits.set_index("fruit_id").loc[seen]
         n_gt, n_pred, n_all = len(g), int(inputs["counts"]["count"].sum()), len(near_ids)
         out.update(count_gt=float(n_gt), count_pred=float(n_pred),

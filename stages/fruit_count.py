@@ -12,7 +12,6 @@ from scipy.optimize import least_squares
 from scipy.stats import binom
 
 import schemas
-from nerf.config import BASE_PIXELS
 from nerf.geometry import pose_matrix
 from pipeline.classes import DEFAULT_CLASSES, THING_IDS, class_name
 from pipeline.images import ImageError, read_label
@@ -21,6 +20,7 @@ from nerf.surfaces import fit_sphere, plausible_fit, principal_extents, robust_c
 from rowmap.colours import id_colours
 from rowmap.geometry import subsample
 from rowmap.renders import read_depth
+from rowmap.scoring import reference_pixels
 
 INPUTS = ("frames", "nerf", "panoptic_frames", "panoptic", "fruit_slots")
 OUTPUTS = ("fruits", "counts", "fruit_map")
@@ -121,12 +121,6 @@ def fit_spheroid(points: np.ndarray) -> tuple[np.ndarray, float, float]:
 
     x = least_squares(resid, x0, loss="soft_l1", f_scale=0.003, max_nfev=100).x
     return x[:3] + mu, 2 * abs(float(x[3])), 2 * abs(float(x[4]))
-
-
-def reference_pixels(n_pixels: int, image_pixels: int) -> float:
-    """`n_pixels` of an image of `image_pixels` pixels counted as in a 320x180 image (nerf.config.BASE_PIXELS):
-    scaled down for larger images, never up."""
-    return n_pixels * min(1.0, BASE_PIXELS / image_pixels)
 
 
 def is_fragment(n_frames: int, n_points: int, ref_pixels: float, cfg: Config) -> bool:
@@ -233,7 +227,7 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
             d = depth[vv, uu]
             good = d > 0
             seen[fruit].append(fid)
-            ref_px[fruit] += reference_pixels(int(good.sum()), inst.size)
+            ref_px[fruit] += float(reference_pixels(int(good.sum()), inst.size))
             if det is not None:
                 checked[fruit] += 1
                 confirmed[fruit] += int(np.mean(det[vv, uu] > 0) >= cfg.detector_cover)

@@ -11,7 +11,7 @@ from scipy.optimize import linear_sum_assignment
 
 import schemas
 from nerf.geometry import pose_matrix, pose_txyzq
-from nerf.surfaces import robust_centre, unproject
+from nerf.surfaces import fit_sphere, plausible_fit, principal_extents, robust_centre, unproject
 from pipeline.classes import THING_IDS, VOID
 from pipeline.images import ImageError, write_png
 from pipeline.stage import StageContext
@@ -83,6 +83,14 @@ class Config:
     min_slot_px: int = 4
     """pixels, >= 1: slots with fewer pixels over all the window's frames are dropped (their pixels become
     void). Raise it when specks of a few pixels show up as fruits."""
+    track_margin_m: float = 0.01
+    """metres, >= 0. Each fused fruit gets a sphere fitted to its seen surface over all its windows and frames
+    (where the fit is plausible: max_fruit_radius_m). In every fused frame a fruit pixel whose 3D point
+    (rendered depth) lies outside the sphere of the fruit it was given, by more than this margin, but inside
+    another fruit's sphere (radius + margin) goes to that fruit: a slot that painted a piece of a neighbour
+    (a fruit entering or leaving the image, or one behind it) gives that piece back to the fruit whose
+    surface it is. Pixels on no sphere, and fruits without a plausible sphere, keep their id. About the
+    rendered depth error; 0 = off."""
     max_points_per_view: int = 400
     """points, >= 1: 3D points kept per slot and frame for the centre (evenly subsampled). More points cost
     time and change the centres little; lower it on large images to save time."""
@@ -100,6 +108,8 @@ class Config:
         if self.split_distance_m < 0 or self.min_slot_px < 1 or self.max_points_per_view < 1 or self.min_split_frames < 1:
             raise ValueError("panoptic_fusion: split_distance_m must be >= 0, min_slot_px, max_points_per_view and "
                              "min_split_frames >= 1")
+        if not self.track_margin_m >= 0:
+            raise ValueError(f"panoptic_fusion.track_margin_m must be >= 0, got {self.track_margin_m}")
         if self.group_gap_m < 0 or self.min_group_px < 1:
             raise ValueError(f"panoptic_fusion: group_gap_m must be >= 0 and min_group_px >= 1, got "
                              f"{self.group_gap_m}, {self.min_group_px}")
@@ -295,6 +305,50 @@ def associate(fruits: list[LocalFruit], masks: dict[tuple[int, int], np.ndarray]
     return list(groups.values())
 
 
+def fruit_spheres(groups: list[list[int]], local: list[LocalFruit], slot_views: dict, fruit_ids: list[int],
+                  max_radius_m: float) -> dict[int, tuple[np.ndarray, float]]:
+    """{fruit id: (sphere centre [3], radius)} of the fused fruits whose seen surface (the points of all their
+    windows' slot views) fits a plausible sphere (nerf.surfaces.plausible_fit)."""
+    out = {}
+    for fruit_id, g in zip(fruit_ids, groups):
+        pts = [slot_views[(local[i].window_id, local[i].slot)][fg].points for i in g for fg in local[i].frames]
+        pts = np.concatenate(pts) if pts else np.zeros((0, 3))
+        if len(pts) < 20:
+            continue
+        med, keep = robust_centre(pts)
+        c, r = fit_sphere(pts[keep])
+        if plausible_fit(c, r, med, principal_extents(pts[keep])[0], max_radius_m, 2.0):
+            out[fruit_id] = (c, float(r))
+    return out
+
+
+def relabel_by_surface(inst: np.ndarray, depth: np.ndarray, k: np.ndarray, c2w: np.ndarray,
+                       spheres: dict[int, tuple[np.ndarray, float]], margin_m: float) -> int:
+    """Give each fruit pixel of a fused frame (`inst` [H, W] fruit ids, changed in place; rendered z-depth in m,
+    intrinsics k = (fx, fy, cx, cy), pose c2w) whose 3D point lies more than margin_m outside its own fruit's
+    sphere but within another's (radius + margin_m) to that fruit (the one it lies deepest in: smallest
+    distance / radius). Pixels of fruits without a sphere, and pixels on no sphere, keep their id. Returns the
+    pixels moved."""
+    if margin_m <= 0 or len(spheres) < 2:
+        return 0
+    ids = np.array(sorted(spheres))
+    v, u = np.nonzero(np.isin(inst, ids) & (depth > 0))
+    if not len(v):
+        return 0
+    centres = np.stack([spheres[int(i)][0] for i in ids])
+    radii = np.array([spheres[int(i)][1] for i in ids])
+    p = unproject(depth, k, c2w, v, u)
+    rel = np.linalg.norm(p[:, None] - centres[None], axis=2) / radii           # [P, S] distance / radius
+    reach = 1.0 + margin_m / radii
+    own = np.searchsorted(ids, inst[v, u])
+    off_own = rel[np.arange(len(v)), own] > reach[own]
+    score = np.where(rel <= reach[None], rel, np.inf)
+    best = score.argmin(1)
+    move = off_own & np.isfinite(score[np.arange(len(v)), best]) & (best != own)
+    inst[v[move], u[move]] = ids[best[move]]
+    return int(move.sum())
+
+
 def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]:
     frames: pd.DataFrame = inputs["frames"].set_index("frame_id", drop=False)
     renders = Renders(inputs["renders"], ctx.data_root)
@@ -393,6 +447,14 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
     for fruit_id, j in enumerate(order, start=1):
         for i in groups[j]:
             local[i].fruit_id = fruit_id
+    fruit_class = np.zeros(len(groups) + 1, np.uint8)   # fruit id -> class with the most pixels
+    for g in groups:
+        px = defaultdict(int)
+        for i in g:
+            px[local[i].class_id] += local[i].n_px
+        fruit_class[local[g[0]].fruit_id] = max(px, key=px.get)
+    spheres = fruit_spheres(groups, local, slot_views, [local[g[0]].fruit_id for g in groups],
+                            cfg.max_fruit_radius_m) if cfg.track_margin_m > 0 else {}
     dropped = [lf for lf in local if lf.fruit_id == 0]
     ctx.count("slots", len(local))
     ctx.count("slots_dropped", len(dropped))
@@ -409,7 +471,7 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
                           total=int(pick.frame_id.nunique())):
         wid, fid = int(r.window_id), int(r.frame_id)
         fr = frames.loc[fid]
-        sem, inst, _ = read_render(renders, wid, fid, (int(fr.height), int(fr.width)))
+        sem, inst, depth = read_render(renders, wid, fid, (int(fr.height), int(fr.width)))
         thing = np.isin(sem, THING_IDS) & (inst > 0)
         out_inst = np.zeros(inst.shape, np.uint16)
         out_sem = sem.astype(np.uint8)
@@ -425,6 +487,14 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
                 out_inst[m] = fruit_id
             else:
                 out_sem[m] = VOID
+        if spheres:
+            before = out_inst.copy()
+            moved = relabel_by_surface(out_inst, depth, np.array([fr.fx, fr.fy, fr.cx, fr.cy], np.float64), r.c2w,
+                                       spheres, cfg.track_margin_m)
+            if moved:
+                ctx.count("pixels_moved_to_their_surface", moved)
+                m = out_inst != before
+                out_sem[m] = fruit_class[out_inst[m]]
         name = f"{fid:06d}.png"
         write_png(out_dir / "semantic" / name, out_sem)
         write_png(out_dir / "instance" / name, out_inst)

@@ -15,6 +15,7 @@ from pipeline.classes import THING_IDS
 from pipeline.images import ImageError, read_label
 from pipeline.stage import StageContext
 from rowmap.geometry import pixel_groups, surface_centre, window_alignments
+from rowmap.scoring import reference_pixels
 from stages import evaluate, fruit_count, panoptic_fusion, report
 
 from fruitmap_fixture import SEQ, TINY, run_stages
@@ -229,6 +230,46 @@ def test_a_slot_over_two_fruits_in_one_frame_splits_into_groups_that_join_their_
                                                                         [(2, 1), (3, 0), (4, 0)]]
     with pytest.raises(ValueError, match="group_gap_m must be >= 0"):
         panoptic_fusion.Config(group_gap_m=-1.0)
+
+
+def sphere_depth(k: np.ndarray, hw: tuple[int, int], spheres: list[tuple[np.ndarray, float]],
+                 background_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """(z-depth [H, W], index of the sphere each pixel sees, -1 = background) of spheres in front of a camera
+    at the origin looking along +z (identity pose)."""
+    h, w = hw
+    v, u = np.mgrid[0:h, 0:w]
+    d = np.stack([(u + 0.5 - k[2]) / k[0], (v + 0.5 - k[3]) / k[1], np.ones((h, w))], -1)  # rays with z = 1
+    depth, who = np.full((h, w), background_m), np.full((h, w), -1)
+    for i, (c, r) in enumerate(spheres):
+        a, b, cc = (d ** 2).sum(-1), -2 * (d @ c), c @ c - r * r
+        disc = b * b - 4 * a * cc
+        t = np.where(disc >= 0, (-b - np.sqrt(np.maximum(disc, 0))) / (2 * a), np.inf)
+        nearer = t < depth
+        depth, who = np.where(nearer, t, depth), np.where(nearer, i, who)
+    return depth, who
+
+
+def test_fruit_pixels_on_another_fruits_surface_go_to_that_fruit():
+    k = np.array([100.0, 100.0, 40.0, 30.0])
+    a, b = (np.array([-0.05, 0.0, 0.5]), 0.03), (np.array([0.05, 0.0, 0.55]), 0.035)
+    depth, who = sphere_depth(k, (60, 80), [a, b], background_m=2.0)
+    truth = np.where(who == 0, 1, np.where(who == 1, 2, 0)).astype(np.uint16)
+    inst = truth.copy()
+    stolen = (who == 1) & (np.arange(80)[None] < 48)        # fruit 1's slot painted a piece of fruit 2
+    inst[stolen] = 1
+    halo = (who == -1) & (np.abs(np.arange(80)[None] - 30) < 9) & (np.abs(np.arange(60)[:, None] - 30) < 3)
+    inst[halo] = 1                                           # boundary pixels whose depth is the background
+    assert stolen.sum() > 20 and halo.sum() > 0
+    spheres = {1: a, 2: b}
+    moved = panoptic_fusion.relabel_by_surface(inst, depth, k, np.eye(4), spheres, margin_m=0.01)
+    assert moved == stolen.sum()
+    assert (inst[who >= 0] == truth[who >= 0]).all() and (inst[halo] == 1).all()
+    # a fruit without a sphere keeps its pixels, and margin 0 switches the rule off
+    inst[stolen] = 1
+    assert panoptic_fusion.relabel_by_surface(inst, depth, k, np.eye(4), {2: b, 3: (np.ones(3), 0.03)}, 0.01) == 0
+    assert panoptic_fusion.relabel_by_surface(inst, depth, k, np.eye(4), spheres, 0.0) == 0
+    with pytest.raises(ValueError, match="track_margin_m"):
+        panoptic_fusion.Config(track_margin_m=-0.01)
 
 
 def drop_renders(row, kinds: tuple[str, ...], window: int | None = None) -> None:
@@ -502,15 +543,15 @@ def test_the_fragment_rule_means_the_same_at_every_image_size():
     cfg = fruit_count.Config(min_count_frames=2, min_count_points=100)
     # a sliver of 150 px in each of 3 frames, its points capped per frame: at 320x180 a fruit, at 1280x720 the
     # same sliver covers 16 times the pixels and points, and is still a fruit
-    small = sum(fruit_count.reference_pixels(150, 320 * 180) for _ in range(3))
-    large = sum(fruit_count.reference_pixels(150 * 16, 1280 * 720) for _ in range(3))
+    small = sum(reference_pixels(150, 320 * 180) for _ in range(3))
+    large = sum(reference_pixels(150 * 16, 1280 * 720) for _ in range(3))
     assert small == large == 450
     assert not fruit_count.is_fragment(3, 450, small, cfg) and not fruit_count.is_fragment(3, 1800, large, cfg)
     # a stray piece of 30 px per frame at 320x180 is a fragment; at 1280x720 (480 px per frame, 1440 points)
     # its points alone would pass, its reference pixels do not
-    stray = sum(fruit_count.reference_pixels(480, 1280 * 720) for _ in range(3))
+    stray = sum(reference_pixels(480, 1280 * 720) for _ in range(3))
     assert stray == 90 and fruit_count.is_fragment(3, 1440, stray, cfg)
     assert fruit_count.is_fragment(3, 90, 90.0, cfg)
     # images smaller than 320x180 are not scaled up; too few frames or points stay fragments
-    assert fruit_count.reference_pixels(100, 64 * 40) == 100
+    assert reference_pixels(100, 64 * 40) == 100
     assert fruit_count.is_fragment(1, 5000, 5000.0, cfg) and fruit_count.is_fragment(5, 60, 5000.0, cfg)

@@ -1,5 +1,6 @@
 import pandas as pd
 
+from rowmap.scoring import image_pixels_for, reference_pixels
 from stages.evaluate import Config, countable_fruits
 
 
@@ -13,5 +14,21 @@ def test_countable_fruits_need_enough_pixels_in_enough_frames_of_the_near_row():
     rows += [(0, 4, 60, False), (1, 4, 60, True), (2, 4, 60, True), (3, 4, 60, True)]  # one view dropped
     seg = pd.DataFrame(rows, columns=["frame_id", "instance_id", "area_px", "kept"])
     cfg = Config(min_frames_id=3, min_visible_px=12)
-    assert countable_fruits(seg, {1, 2, 3, 4}, cfg) == [1, 4]
-    assert countable_fruits(seg, {1, 2, 3, 4}, Config(min_frames_id=2, min_visible_px=12)) == [1, 2, 3, 4]
+    assert countable_fruits(seg, {1, 2, 3, 4}, 320 * 180, cfg) == [1, 4]
+    assert countable_fruits(seg, {1, 2, 3, 4}, 320 * 180, Config(min_frames_id=2, min_visible_px=12)) == [1, 2, 3, 4]
+    # at 1280x720 a fruit must cover 16 times the pixels (192) to count as visible: the same views at 16 times
+    # the pixels give the same fruits; at their own pixels only fruit 1 (300 px) stays
+    big = seg.assign(area_px=seg.area_px * 16)
+    assert countable_fruits(big, {1, 2, 3, 4}, 1280 * 720, cfg) == [1, 4]
+    assert countable_fruits(seg, {1, 2, 3, 4}, 1280 * 720, cfg) == [1]   # 60 px of fruit 4 < 192
+    assert countable_fruits(seg, {1, 2, 3, 4}, 64 * 40, cfg) == [1, 4]   # smaller images are not scaled up
+
+
+def test_reference_pixels_and_their_inverse():
+    assert reference_pixels(16 * 12, 1280 * 720) == 12 and reference_pixels(12, 64 * 40) == 12
+    assert image_pixels_for(12, 1280 * 720) == 192 and image_pixels_for(12, 640 * 360) == 48
+    assert image_pixels_for(12, 320 * 180) == 12 and image_pixels_for(12, 64 * 40) == 12
+    for px in (12, 7, 100):
+        for size in (320 * 180, 1280 * 720, 1000 * 700):
+            assert reference_pixels(image_pixels_for(px, size), size) >= px
+            assert reference_pixels(image_pixels_for(px, size) - 1, size) < px
