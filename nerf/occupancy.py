@@ -49,13 +49,17 @@ class OccupancyGrid:
         """Occupied = cells within `dilate` cells of a surface point, plus cells along `free_rays`
         (origins, directions, t samples) where the sensor gave no depth."""
         occ = torch.zeros_like(self.occupied)
-        flat, inside = self.index(surface_pts)
-        occ[flat[inside]] = True
+        chunk = 1 << 18      # points (or rays) at a time: a window's free rays x t samples would take gigabytes
+        for s in range(0, surface_pts.shape[0], chunk):
+            flat, inside = self.index(surface_pts[s:s + chunk])
+            occ[flat[inside]] = True
         if free_rays is not None:
             o, d, t = free_rays
-            pts = (o[:, None] + d[:, None] * t[None, :, None]).reshape(-1, 3)
-            f, ins = self.index(pts)
-            occ[f[ins]] = True
+            step = max(1, chunk // max(len(t), 1))
+            for s in range(0, o.shape[0], step):
+                pts = (o[s:s + step, None] + d[s:s + step, None] * t[None, :, None]).reshape(-1, 3)
+                f, ins = self.index(pts)
+                occ[f[ins]] = True
         grid = occ.reshape(*self.res.tolist()).float()[None, None]
         if dilate:
             grid = torch.nn.functional.max_pool3d(grid, 2 * dilate + 1, stride=1, padding=dilate)

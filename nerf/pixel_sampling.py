@@ -16,14 +16,18 @@ from torch import Tensor
 def gradient_cdf(images: Tensor) -> Tensor:
     """Cumulative sum over [N, H, W] (flattened) of each pixel's colour gradient magnitude (central
     differences, summed over channels) plus a small floor, for drawing pixels near texture and edges."""
-    x = images.float() / 255.0
-    gx = torch.zeros_like(x)
-    gy = torch.zeros_like(x)
-    gx[:, :, 1:-1] = (x[:, :, 2:] - x[:, :, :-2]) / 2
-    gy[:, 1:-1] = (x[:, 2:] - x[:, :-2]) / 2
-    mag = (gx.abs() + gy.abs()).sum(-1).reshape(-1)
-    mag = mag + 0.05 * mag.mean()
-    return torch.cumsum(mag.double(), 0)
+    n, h, w = images.shape[:3]
+    mag = torch.empty((n, h, w), dtype=torch.float32, device=images.device)
+    for i in range(n):  # frame by frame: float copies of a whole window's images would take gigabytes
+        x = images[i].float() / 255.0
+        gx = torch.zeros_like(x)
+        gy = torch.zeros_like(x)
+        gx[:, 1:-1] = (x[:, 2:] - x[:, :-2]) / 2
+        gy[1:-1] = (x[2:] - x[:-2]) / 2
+        mag[i] = (gx.abs() + gy.abs()).sum(-1)
+    mag = mag.reshape(-1)
+    mag += 0.05 * mag.mean()
+    return mag.double().cumsum_(0)
 
 
 def draw_from_cdf(cdf: Tensor, n: int, g: torch.Generator) -> Tensor:

@@ -63,10 +63,12 @@ def depth_supervised(depths: Tensor, edge_m: float, far_m: float) -> Tensor:
     ok = (depths > 0) & (depths < far_m)
     if edge_m <= 0:
         return ok
-    d = torch.where(ok, depths, torch.zeros_like(depths))[:, None]
-    hi = F.max_pool2d(d, 3, stride=1, padding=1)
-    lo = -F.max_pool2d(-d, 3, stride=1, padding=1)       # an invalid neighbour (0) makes the range large
-    return ok & ((hi - lo)[:, 0] <= edge_m)
+    for i in range(len(depths)):  # frame by frame: the pooled copies of a whole window would take gigabytes
+        d = torch.where(ok[i], depths[i], torch.zeros_like(depths[i]))[None, None]
+        hi = F.max_pool2d(d, 3, stride=1, padding=1)
+        lo = -F.max_pool2d(-d, 3, stride=1, padding=1)   # an invalid neighbour (0) makes the range large
+        ok[i] &= (hi - lo)[0, 0] <= edge_m
+    return ok
 
 
 def _rays_for(model: NerfModel, poses: PoseCorrection, c2w0: Tensor, k: Tensor, frames: Tensor, u: Tensor, v: Tensor,

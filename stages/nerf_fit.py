@@ -193,6 +193,7 @@ def fit_one(payload: dict) -> dict:
                                progress=lambda s, n, info: parallel.report(key, s, n, phase="panoptic step", **info))
         except Exception as err:
             raise RuntimeError(f"window {wid} (panoptic phase): {err}") from err
+        del labels  # the window's label images are not needed past the fit (hundreds of MB at 1280x720)
         state["panoptic"] = pan.state()
         full = set(np.flatnonzero(frames[[c for c in ("is_center", "labelled") if c in frames]].any(axis=1)).tolist())
         validate(res, data, reporting_render(key, render_at(lambda m, i: render_panoptic(m, pan, i), res.model,
