@@ -26,15 +26,10 @@ OUTPUTS = ("windows",)
 
 @dataclass(frozen=True)
 class Config:
-    half_width: int = 30
+    half_width: int = 20
     """frames, >= 1, on each side of the centre frame (clipped at the sequence ends): a window holds up to
-    2 * half_width + 1 frames. The window should span about as far as the camera moves while a fruit crosses
-    the image, so that a fruit at its centre is seen from one image border to the other: 2 * half_width + 1
-    ~ 2 * d * tan(fov_x / 2) * fps / v for a camera d metres from the row with horizontal field of view fov_x,
-    moving at v m/s. The default, 30, is that rule for a RealSense-like camera (69 degrees) 0.6 m from the row
-    at 15 fps and 0.2 m/s (0.83 m of row, 62 frames). Wider windows give each fruit more views and cost more
-    time per fit (the colour fit's steps are fixed, its renders grow with the frames); sparser labelled frames
-    need fewer filler windows."""
+    2 * half_width + 1 frames. Wider windows give each fruit more views and cost more time per fit; the
+    window should span about as far as the camera moves while a fruit crosses the image."""
     max_windows: int = 0
     """keep at most this many windows, evenly spread (0 = all). For quick runs; a subset leaves stretches of
     the row uncovered, so cover_row is ignored then."""
@@ -54,8 +49,9 @@ class Config:
     or two of its training frames only, where the detector often misses it (cut by the image border). 0 =
     windows train on their own span only."""
     max_extend: int = 0
-    """frames, >= 0, a window may grow by on each side to close a gap (cover_row; 0 = half_width // 2); longer
-    gaps get filler windows."""
+    """frames, >= 0, a window may grow by on each side to close a gap (cover_row; 0 = half_width); a longer gap
+    gets as many filler windows as it needs beyond what its neighbours can grow into. A filler window costs a
+    whole fit; growing a window costs no steps but spreads its fixed steps over more frames."""
 
     def __post_init__(self) -> None:
         if self.half_width < 1:
@@ -89,7 +85,7 @@ def spans(centre_pos: list[int], n: int, cfg: Config) -> list[tuple[int, int, in
     out = [(max(0, c - hw), min(n - 1, c + hw), c) for c in sorted(centre_pos)]
     if not cfg.cover_row or cfg.max_windows or not out:
         return out
-    ext = cfg.max_extend or hw // 2
+    ext = cfg.max_extend or hw
     overlap = min(cfg.min_overlap, hw)
     # 1. filler windows in stretches that extending the neighbours cannot close
     filled = []
@@ -99,7 +95,7 @@ def spans(centre_pos: list[int], n: int, cfg: Config) -> list[tuple[int, int, in
         sides = (i > 0) + (i < len(out))
         need = hi - lo + 1 + (overlap if sides == 2 else 0)
         if hi >= lo and need > ext * sides:
-            k = -(-(hi - lo + 1) // (2 * hw + 1))
+            k = -(-(need - ext * sides) // (2 * hw + 1))     # fillers for what the neighbours cannot grow into
             for c in np.linspace(lo + hw, hi - hw, k) if k > 1 else [(lo + hi) // 2]:
                 c = int(round(c))
                 filled.append((max(0, c - hw), min(n - 1, c + hw), c))

@@ -69,17 +69,31 @@ def test_cover_row_extends_windows_into_short_gaps_and_fills_long_ones():
     span = w.groupby("window_id").frame_id.agg(["min", "max"])
     assert span.values.tolist() == [[0, 50], [40, 80], [69, 119]]
     assert ctx.summary["filler_windows"] == 0 and ctx.summary["frames_in_no_window"] == 0
-    # 240 frames, labelled 60 / 120 / 179 (a longer row): gaps of 19-40 frames get filler windows
+    # 240 frames, labelled 60 / 120 / 179 (a longer row): the gaps of 18-19 frames between the windows are
+    # closed by growing them (up to half_width per side), the 40 frames at either end get a filler window
     w, ctx = run(240, {60, 120, 179}, half_width=20)
     span = w.groupby("window_id").frame_id.agg(["min", "max"]).sort_values("min").to_numpy()
-    assert ctx.summary["frames_in_no_window"] == 0 and ctx.summary["filler_windows"] >= 3
+    assert ctx.summary["frames_in_no_window"] == 0 and ctx.summary["filler_windows"] == 2
     assert (span[1:, 0] <= span[:-1, 1] - 3).all()                   # neighbours share >= 4 frames
     assert w[w.is_center].frame_id.tolist() == [60, 120, 179]          # fillers have no evaluation frame
-    assert (w.groupby("window_id").size() <= 41 + 2 * 10).all()      # extensions stay within max_extend
+    assert (w.groupby("window_id").size() <= 41 + 2 * 20).all()      # extensions stay within max_extend
+    # with max_extend = 10 the same gaps need 4 fillers
+    _, small = run(240, {60, 120, 179}, half_width=20, max_extend=10)
+    assert small.summary["filler_windows"] == 4 and small.summary["frames_in_no_window"] == 0
     roles = w.groupby("frame_id")["split"].nunique()
     assert (roles == 1).all() and (w[w.frame_id.isin([60, 120, 179])].split == "val").all()
     assert 0.45 <= (w.drop_duplicates("frame_id").split == "train").mean() <= 0.55
     assert "filler window" in " ".join(ctx.summary["notes"])
+
+
+def test_a_recording_with_a_labelled_frame_every_metre_needs_one_filler_per_end():
+    # the bup20 layout: 450 frames, labelled every 75 frames: the five labelled windows grow into the 34-frame
+    # gaps between them and one filler covers each end (7 windows; with max_extend = 10 it takes 13)
+    w, ctx = run(450, {75, 150, 224, 299, 374}, half_width=20)
+    span = w.groupby("window_id").frame_id.agg(["min", "max"]).sort_values("min").to_numpy()
+    assert w.window_id.nunique() == 7 and ctx.summary["filler_windows"] == 2
+    assert ctx.summary["frames_in_no_window"] == 0 and (span[1:, 0] <= span[:-1, 1] - 3).all()
+    assert run(450, {75, 150, 224, 299, 374}, half_width=20, max_extend=10)[0].window_id.nunique() == 13
 
 
 def test_cover_row_is_off_with_max_windows_and_paper_windows_leave_gaps():
