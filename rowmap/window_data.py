@@ -31,13 +31,13 @@ def load_labels(frames: pd.DataFrame, dets: pd.DataFrame | None, data_root: Path
     depth filter dropped become void, thing pixels carry their segment's score, stuff pixels 1."""
     from nerf.panoptic.labels import WindowLabels
 
-    sems, insts, confs = [], [], []
     h, w = int(frames["height"].iloc[0]), int(frames["width"].iloc[0])
-    for fid, sp, ip in zip(frames["frame_id"], frames["det_semantic_path"], frames["det_instance_path"]):
+    n = len(frames)
+    # filled frame by frame: lists of frames stacked at the end would hold the window's labels twice
+    sems, insts, confs = np.empty((n, h, w), np.uint8), np.empty((n, h, w), np.int32), np.empty((n, h, w), np.float32)
+    for j, (fid, sp, ip) in enumerate(zip(frames["frame_id"], frames["det_semantic_path"], frames["det_instance_path"])):
         if not isinstance(sp, str) or not isinstance(ip, str):  # no detector output for this frame: all void
-            sems.append(np.full((h, w), VOID, np.uint8))
-            insts.append(np.zeros((h, w), np.int32))
-            confs.append(np.zeros((h, w), np.float32))
+            sems[j], insts[j], confs[j] = VOID, 0, 0.0
             continue
         sem = read_label(data_root / sp, "detector semantic").astype(np.uint8)
         inst = read_label(data_root / ip, "detector instance")
@@ -57,10 +57,8 @@ def load_labels(frames: pd.DataFrame, dets: pd.DataFrame | None, data_root: Path
             sem[drop] = VOID
             inst[drop] = 0
             conf[drop] = 0.0
-        sems.append(sem)
-        insts.append(inst)
-        confs.append(conf)
-    return WindowLabels(np.stack(sems), np.stack(insts), np.stack(confs))
+        sems[j], insts[j], confs[j] = sem, inst, conf
+    return WindowLabels(sems, insts, confs)
 
 
 def initial_poses(w: pd.DataFrame, wid: int, colmap: pd.DataFrame | None, source: str) -> pd.DataFrame:

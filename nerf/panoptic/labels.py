@@ -24,7 +24,9 @@ class WindowLabels:
         if not (self.semantic.shape == self.instance.shape == self.confidence.shape):
             raise ValueError(f"WindowLabels shapes differ: semantic {self.semantic.shape}, instance "
                              f"{self.instance.shape}, confidence {self.confidence.shape}")
-        self.confidence = np.nan_to_num(self.confidence.astype(np.float32), nan=0.0, posinf=1.0, neginf=0.0).clip(0, 1)
+        conf = np.array(self.confidence, np.float32)  # one copy, cleaned in place (the caller's array is kept)
+        np.nan_to_num(conf, copy=False, nan=0.0, posinf=1.0, neginf=0.0)
+        self.confidence = np.clip(conf, 0, 1, out=conf)
 
     def take(self, idx: np.ndarray) -> "WindowLabels":
         """The labels of the frames `idx` only, in that order."""
