@@ -62,3 +62,16 @@ def plausible_fit(centre: np.ndarray, radius: float, median: np.ndarray, largest
     small cap)."""
     return bool(np.all(np.isfinite(centre)) and 0 < radius <= max_radius_m
                 and np.linalg.norm(centre - median) <= max_radius_m and 2 * radius <= max_extent_ratio * largest_extent)
+
+
+def fruit_sphere(points: np.ndarray, max_radius_m: float, max_extent_ratio: float = 2.0, min_points: int = 4
+                 ) -> tuple[np.ndarray, float, np.ndarray] | None:
+    """(centre [3], radius, median [3]) of a least-squares sphere through the inliers of robust_centre of a
+    fruit's seen surface points [N, 3], or None with fewer than min_points (at least 4) inliers or where the
+    fit is not plausible_fit."""
+    med, keep = robust_centre(points)
+    inl = points[keep]
+    if len(inl) < max(min_points, 4):
+        return None
+    c, r = fit_sphere(inl)
+    return (c, r, med) if plausible_fit(c, r, med, principal_extents(inl)[0], max_radius_m, max_extent_ratio) else None

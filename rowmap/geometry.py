@@ -8,7 +8,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 from nerf.geometry import align_similarity, pose_matrix, similarity_matrix
-from nerf.surfaces import fit_sphere, plausible_fit, principal_extents, robust_centre
+from nerf.surfaces import fruit_sphere, robust_centre
 
 POSE_COLS = ("tx", "ty", "tz", "qx", "qy", "qz", "qw")
 """camera-to-world pose columns of the pose tables (position in m, rotation quaternion)."""
@@ -46,12 +46,8 @@ def surface_centre(points: np.ndarray, max_radius_m: float, min_points: int = 20
     through the inliers of robust_centre where that fit is plausible (plausible_fit), else their median.
     The median of a seen surface sits on the side facing the camera, so two windows that saw one fruit
     from either side put medians several centimetres apart; the sphere centre does not move with the view."""
-    med, keep = robust_centre(points)
-    inl = points[keep]
-    if len(inl) < max(min_points, 4):
-        return med
-    c, r = fit_sphere(inl)
-    return c if plausible_fit(c, r, med, principal_extents(inl)[0], max_radius_m, max_extent_ratio) else med
+    fit = fruit_sphere(points, max_radius_m, max_extent_ratio, min_points)
+    return fit[0] if fit is not None else robust_centre(points)[0]
 
 
 def subsample(n: int, cap: int) -> np.ndarray:

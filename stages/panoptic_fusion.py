@@ -11,7 +11,7 @@ from scipy.optimize import linear_sum_assignment
 
 import schemas
 from nerf.geometry import pose_matrix, pose_txyzq
-from nerf.surfaces import fit_sphere, plausible_fit, principal_extents, robust_centre, unproject
+from nerf.surfaces import fruit_sphere, robust_centre, unproject
 from pipeline.classes import THING_IDS, VOID
 from pipeline.images import ImageError, write_png
 from pipeline.stage import StageContext
@@ -315,10 +315,9 @@ def fruit_spheres(groups: list[list[int]], local: list[LocalFruit], slot_views: 
         pts = np.concatenate(pts) if pts else np.zeros((0, 3))
         if len(pts) < 20:
             continue
-        med, keep = robust_centre(pts)
-        c, r = fit_sphere(pts[keep])
-        if plausible_fit(c, r, med, principal_extents(pts[keep])[0], max_radius_m, 2.0):
-            out[fruit_id] = (c, float(r))
+        fit = fruit_sphere(pts, max_radius_m)
+        if fit is not None:
+            out[fruit_id] = (fit[0], float(fit[1]))
     return out
 
 

@@ -7,7 +7,7 @@ import numpy as np
 from torch import Tensor
 
 from nerf.config import PanopticConfig
-from nerf.surfaces import fit_sphere, plausible_fit, principal_extents, robust_centre, unproject
+from nerf.surfaces import fruit_sphere, unproject
 
 
 def instance_spheres(frames: list[tuple[np.ndarray, np.ndarray]], intrinsics: np.ndarray, c2w: np.ndarray,
@@ -31,10 +31,9 @@ def instance_spheres(frames: list[tuple[np.ndarray, np.ndarray]], intrinsics: np
         p = np.concatenate(chunks)
         if len(p) < cfg.complete_min_points:
             continue
-        med, keep = robust_centre(p)
-        c, r = fit_sphere(p[keep])
-        if plausible_fit(c, r, med, principal_extents(p[keep])[0], cfg.complete_max_radius_m, 2.0):
-            out[sl_id] = (c, r)
+        fit = fruit_sphere(p, cfg.complete_max_radius_m)
+        if fit is not None:
+            out[sl_id] = fit[:2]
     return out
 
 
