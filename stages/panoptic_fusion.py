@@ -11,6 +11,7 @@ from scipy.optimize import linear_sum_assignment
 
 import schemas
 from nerf.geometry import pose_matrix, pose_txyzq
+from nerf.panoptic.complete import sphere_boxes
 from nerf.surfaces import fruit_sphere, robust_centre, unproject
 from pipeline.classes import THING_IDS, VOID
 from pipeline.images import ImageError, write_png
@@ -331,19 +332,30 @@ def relabel_by_surface(inst: np.ndarray, depth: np.ndarray, k: np.ndarray, c2w: 
     if margin_m <= 0 or len(spheres) < 2:
         return 0
     ids = np.array(sorted(spheres))
-    v, u = np.nonzero(np.isin(inst, ids) & (depth > 0))
-    if not len(v):
-        return 0
     centres = np.stack([spheres[int(i)][0] for i in ids])
     radii = np.array([spheres[int(i)][1] for i in ids])
+    # only the spheres whose image box is in the frame can hold a pixel's point (sphere_boxes)
+    boxes = sphere_boxes(inst.shape, k, c2w, centres, radii + margin_m)
+    seen = np.array([b is None or (b[0] < b[1] and b[2] < b[3]) for b in boxes])
+    if seen.sum() < 2:
+        return 0
+    ids, centres, radii = ids[seen], centres[seen], radii[seen]
+    v, u = np.nonzero((inst > 0) & (depth > 0))
+    if not len(v):
+        return 0
+    own = np.searchsorted(ids, inst[v, u])
+    has_own = (own < len(ids)) & (ids[np.minimum(own, len(ids) - 1)] == inst[v, u])
+    known = np.isin(inst[v, u], list(spheres))         # a fruit without a sphere keeps its pixels
+    v, u, own, has_own = v[known], u[known], own[known], has_own[known]
     p = unproject(depth, k, c2w, v, u)
     rel = np.linalg.norm(p[:, None] - centres[None], axis=2) / radii           # [P, S] distance / radius
     reach = 1.0 + margin_m / radii
-    own = np.searchsorted(ids, inst[v, u])
-    off_own = rel[np.arange(len(v)), own] > reach[own]
+    rows = np.arange(len(v))
+    own_c = np.minimum(own, len(ids) - 1)
+    off_own = ~has_own | (rel[rows, own_c] > reach[own_c])   # a sphere out of the frame holds none of them
     score = np.where(rel <= reach[None], rel, np.inf)
     best = score.argmin(1)
-    move = off_own & np.isfinite(score[np.arange(len(v)), best]) & (best != own)
+    move = off_own & np.isfinite(score[rows, best]) & ~(has_own & (best == own_c))
     inst[v[move], u[move]] = ids[best[move]]
     return int(move.sum())
 

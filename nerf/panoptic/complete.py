@@ -85,24 +85,38 @@ def complete_instances(frames: list[dict], intrinsics: np.ndarray, c2w: np.ndarr
     return added
 
 
-def near_spheres(hw: tuple[int, int], k: np.ndarray, c2w: np.ndarray, centres: np.ndarray,
-                 radii: np.ndarray) -> np.ndarray:
-    """[H, W] bool: the pixels whose ray can meet one of the balls (centres [S, 3], radii [S]) in front of the
-    camera: the union of the image boxes of the balls' bounding cubes (the whole image for a cube that
-    reaches behind the camera). A point of a ball in front of the camera projects inside its box, so the
-    pixels outside every box can be skipped without changing any result."""
+def sphere_boxes(hw: tuple[int, int], k: np.ndarray, c2w: np.ndarray, centres: np.ndarray,
+                 radii: np.ndarray) -> list[tuple[int, int, int, int] | None]:
+    """Per ball (centres [S, 3], radii [S]): the image box (v0, v1, u0, u1), clipped to the image (empty where
+    v0 >= v1 or u0 >= u1) that holds the projection of every point of the ball in front of the camera (the
+    box of its bounding cube), or None for a cube that reaches behind the camera (any pixel)."""
     h, w = hw
-    mask = np.zeros((h, w), bool)
+    out: list[tuple[int, int, int, int] | None] = []
     cam = (centres - c2w[:3, 3]) @ c2w[:3, :3]                          # [S, 3] centres in the camera frame
     corners = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], np.float64)
     for c, r in zip(cam, radii):
         if c[2] - r <= 1e-6:
-            return np.ones((h, w), bool)
+            out.append(None)
+            continue
         q = c + corners * r                                             # [8, 3], all in front
         u = k[0] * q[:, 0] / q[:, 2] + k[2] - 0.5                       # pixel index of the projection
         v = k[1] * q[:, 1] / q[:, 2] + k[3] - 0.5
-        u0, u1 = max(0, int(np.floor(u.min())) - 1), min(w, int(np.ceil(u.max())) + 2)
-        v0, v1 = max(0, int(np.floor(v.min())) - 1), min(h, int(np.ceil(v.max())) + 2)
+        out.append((max(0, int(np.floor(v.min())) - 1), min(h, int(np.ceil(v.max())) + 2),
+                    max(0, int(np.floor(u.min())) - 1), min(w, int(np.ceil(u.max())) + 2)))
+    return out
+
+
+def near_spheres(hw: tuple[int, int], k: np.ndarray, c2w: np.ndarray, centres: np.ndarray,
+                 radii: np.ndarray) -> np.ndarray:
+    """[H, W] bool: the pixels whose ray can meet one of the balls (centres [S, 3], radii [S]) in front of the
+    camera: the union of their sphere_boxes (the whole image for a ball that reaches behind the camera). A
+    point of a ball in front of the camera projects inside its box, so the pixels outside every box can be
+    skipped without changing any result."""
+    mask = np.zeros(hw, bool)
+    for box in sphere_boxes(hw, k, c2w, centres, radii):
+        if box is None:
+            return np.ones(hw, bool)
+        v0, v1, u0, u1 = box
         if u0 < u1 and v0 < v1:
             mask[v0:v1, u0:u1] = True
     return mask
