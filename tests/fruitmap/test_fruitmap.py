@@ -260,13 +260,19 @@ def test_fruit_pixels_on_another_fruits_surface_go_to_that_fruit():
     halo = (who == -1) & (np.abs(np.arange(80)[None] - 30) < 9) & (np.abs(np.arange(60)[:, None] - 30) < 3)
     inst[halo] = 1                                           # boundary pixels whose depth is the background
     assert stolen.sum() > 20 and halo.sum() > 0
-    spheres = {1: a, 2: b}
+    # fruits 3 (off to the side) and 4 (behind the camera) are out of view: they take and give nothing
+    spheres = {1: a, 2: b, 3: (np.array([2.0, 0.0, 0.5]), 0.03), 4: (np.array([0.0, 0.0, -0.5]), 0.03)}
     moved = panoptic_fusion.relabel_by_surface(inst, depth, k, np.eye(4), spheres, margin_m=0.01)
     assert moved == stolen.sum()
     assert (inst[who >= 0] == truth[who >= 0]).all() and (inst[halo] == 1).all()
     # a fruit without a sphere keeps its pixels, and margin 0 switches the rule off
     inst[stolen] = 1
     assert panoptic_fusion.relabel_by_surface(inst, depth, k, np.eye(4), {2: b, 3: (np.ones(3), 0.03)}, 0.01) == 0
+    # pixels of an out-of-view fruit's id lie on no sphere of theirs: they go to the sphere they lie on
+    inst[stolen] = 3
+    assert panoptic_fusion.relabel_by_surface(inst, depth, k, np.eye(4), spheres, 0.01) == stolen.sum()
+    assert (inst[stolen] == 2).all()
+    inst[stolen] = 1
     assert panoptic_fusion.relabel_by_surface(inst, depth, k, np.eye(4), spheres, 0.0) == 0
     with pytest.raises(ValueError, match="track_margin_m"):
         panoptic_fusion.Config(track_margin_m=-0.01)
