@@ -306,12 +306,14 @@ def associate(fruits: list[LocalFruit], masks: dict[tuple[int, int], np.ndarray]
     return list(groups.values())
 
 
-def fruit_spheres(groups: list[list[int]], local: list[LocalFruit], slot_views: dict, fruit_ids: list[int],
+def fruit_spheres(groups: list[list[int]], local: list[LocalFruit], slot_views: dict,
                   max_radius_m: float) -> dict[int, tuple[np.ndarray, float]]:
-    """{fruit id: (sphere centre [3], radius)} of the fused fruits whose seen surface (the points of all their
-    windows' slot views) fits a plausible sphere (nerf.surfaces.plausible_fit)."""
+    """{fruit id: (sphere centre [3], radius)} of the fused fruits (groups of local fruits carrying their fruit
+    id) whose seen surface (the points of all their windows' slot views) fits a plausible sphere
+    (nerf.surfaces.fruit_sphere)."""
     out = {}
-    for fruit_id, g in zip(fruit_ids, groups):
+    for g in groups:
+        fruit_id = local[g[0]].fruit_id
         pts = [slot_views[(local[i].window_id, local[i].slot)][fg].points for i in g for fg in local[i].frames]
         pts = np.concatenate(pts) if pts else np.zeros((0, 3))
         if len(pts) < 20:
@@ -339,23 +341,22 @@ def relabel_by_surface(inst: np.ndarray, depth: np.ndarray, k: np.ndarray, c2w: 
     seen = np.array([b is None or (b[0] < b[1] and b[2] < b[3]) for b in boxes])
     if seen.sum() < 2:
         return 0
+    column = np.full(max(int(inst.max()), int(ids.max())) + 1, -2)  # fruit id -> its sphere among those in view
+    column[ids] = -1                                                  # (-1: out of view, -2: no sphere)
+    column[ids[seen]] = np.arange(int(seen.sum()))
     ids, centres, radii = ids[seen], centres[seen], radii[seen]
-    v, u = np.nonzero((inst > 0) & (depth > 0))
+    v, u = np.nonzero((column[inst] >= -1) & (depth > 0))  # a fruit without a sphere keeps its pixels
     if not len(v):
         return 0
-    own = np.searchsorted(ids, inst[v, u])
-    has_own = (own < len(ids)) & (ids[np.minimum(own, len(ids) - 1)] == inst[v, u])
-    known = np.isin(inst[v, u], list(spheres))         # a fruit without a sphere keeps its pixels
-    v, u, own, has_own = v[known], u[known], own[known], has_own[known]
+    own = column[inst[v, u]]
     p = unproject(depth, k, c2w, v, u)
     rel = np.linalg.norm(p[:, None] - centres[None], axis=2) / radii           # [P, S] distance / radius
     reach = 1.0 + margin_m / radii
     rows = np.arange(len(v))
-    own_c = np.minimum(own, len(ids) - 1)
-    off_own = ~has_own | (rel[rows, own_c] > reach[own_c])   # a sphere out of the frame holds none of them
+    off_own = (own < 0) | (rel[rows, own] > reach[own])    # a sphere out of view holds none of the points
     score = np.where(rel <= reach[None], rel, np.inf)
     best = score.argmin(1)
-    move = off_own & np.isfinite(score[rows, best]) & ~(has_own & (best == own_c))
+    move = off_own & np.isfinite(score[rows, best]) & (best != own)
     inst[v[move], u[move]] = ids[best[move]]
     return int(move.sum())
 
@@ -464,8 +465,7 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
         for i in g:
             px[local[i].class_id] += local[i].n_px
         fruit_class[local[g[0]].fruit_id] = max(px, key=px.get)
-    spheres = fruit_spheres(groups, local, slot_views, [local[g[0]].fruit_id for g in groups],
-                            cfg.max_fruit_radius_m) if cfg.track_margin_m > 0 else {}
+    spheres = fruit_spheres(groups, local, slot_views, cfg.max_fruit_radius_m) if cfg.track_margin_m > 0 else {}
     dropped = [lf for lf in local if lf.fruit_id == 0]
     ctx.count("slots", len(local))
     ctx.count("slots_dropped", len(dropped))
