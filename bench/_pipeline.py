@@ -77,13 +77,15 @@ def settings(values: dict[str, object]) -> list[str]:
     return [f"{k}={v}" for k, v in values.items()]
 
 
-def quality(data_root: Path, seq: str) -> dict[str, float]:
-    """QUALITY columns from the sequence's evaluation table (all NaN if there is none)."""
+def quality(data_root: Path, seq: str,
+            columns: dict[str, tuple[tuple[str, str], ...]] = QUALITY) -> dict[str, float]:
+    """`columns` (QUALITY by default: column -> (scope, metric) candidates) from the sequence's evaluation
+    table (NaN where it has no such score, all NaN if there is none)."""
     path = dataset("evaluation").path(data_root, seq)
     ev = read_table(path, "evaluation") if path.is_file() else pd.DataFrame(columns=["scope", "metric", "value"])
     lookup = {(s, m): v for s, m, v in zip(ev.scope, ev.metric, ev.value)}
     out = {}
-    for col, candidates in QUALITY.items():
+    for col, candidates in columns.items():
         value = next((lookup[c] for c in candidates if c in lookup), None)
         out[col] = float(value) if value is not None and np.isfinite(value) else float("nan")
     return out

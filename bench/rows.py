@@ -21,11 +21,15 @@ import numpy as np
 import pandas as pd
 
 from bench._common import write_parquet
-from bench._pipeline import QUALITY, TINY, run_variant, settings
+from bench._pipeline import QUALITY, TINY, quality, run_variant, settings
 from bench._row_family import FAMILY, QUICK, family_row
 from pipeline.io import atomic_write_bytes
 
-LOWER_IS_BETTER = {"diameter_median_err_m", "minutes", "peak_rss_mb"}
+ID_FAILURES = {f"id_fail_{k}": (("row", f"id_fail_{k}"),) for k in ("unlabelled", "shared", "split")}
+"""Why fruits fail the row-level ID consistency, in fruits (evaluate's id_fail_*; a fruit can fail in several
+ways): 'unlabelled' = in some frame no fused id covers most of it, 'shared' = an id it carries is another
+fruit's somewhere, 'split' = it carries two ids."""
+LOWER_IS_BETTER = {"diameter_median_err_m", "minutes", "peak_rss_mb", *ID_FAILURES}
 """Columns whose worst value is the largest; count_error_rel's worst is the largest magnitude; for the other
 quality columns the worst is the smallest."""
 
@@ -41,7 +45,8 @@ def row_settings(name: str, quick: bool) -> list[str]:
 def run_row(name: str, quick: bool, data_root: Path, force: bool) -> dict:
     seq = f"synth_rows{'q' if quick else ''}_{name}"
     run = run_variant(seq, row_settings(name, quick), data_root, force=force)
-    rec = {"row": name, **family_row(name).knobs(), **run.quality, "minutes": run.stage_minutes(),
+    rec = {"row": name, **family_row(name).knobs(), **run.quality, **quality(data_root, seq, ID_FAILURES),
+           "minutes": run.stage_minutes(),
            "peak_rss_mb": run.peak_rss_mb(), "seq": seq}
     if quick:
         rec.update(n_frames=14, n_labelled=2)
@@ -50,7 +55,7 @@ def run_row(name: str, quick: bool, data_root: Path, force: bool) -> dict:
 
 def summarise(rows: pd.DataFrame) -> pd.DataFrame:
     """The rows, then a 'mean' row and a 'worst' row of every quality and cost column."""
-    cols = [*QUALITY, "minutes", "peak_rss_mb"]
+    cols = [*QUALITY, *(c for c in ID_FAILURES if c in rows), "minutes", "peak_rss_mb"]
     mean = {"row": "mean", **{c: float(rows[c].mean()) for c in cols}}
     worst = {"row": "worst"}
     for c in cols:

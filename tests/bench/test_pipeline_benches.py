@@ -54,6 +54,9 @@ def test_rows_quick_runs_the_pipeline_and_is_checkpointed(tmp_path, capsys):
     assert r.fruits_per_m == family_row("dense").fruits_per_m and r.n_frames == 14
     assert r.count_gt > 0 and np.isfinite(r.count_error_rel) and np.isfinite(r.psnr_db) and np.isfinite(r.pq_detector)
     assert r.minutes > 0 and r.peak_rss_mb > 50
+    ev = pd.read_parquet(data / "processed" / "synth_rowsq_dense" / "evaluation.parquet").set_index(["scope", "metric"])
+    for kind in ("unlabelled", "shared", "split"):  # why fruits fail the ID consistency, from evaluate
+        assert r[f"id_fail_{kind}"] == ev.loc[("row", f"id_fail_{kind}"), "value"]
     manifest = json.loads((data / "interim" / "synth_rowsq_dense" / "_manifest" / "nerf_fit.json").read_text())
     assert manifest["peak_rss_mb"] > 0
     assert (out / "rows_quick.png").is_file()
