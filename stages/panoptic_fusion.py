@@ -269,11 +269,20 @@ def associate(fruits: list[LocalFruit], masks: dict[tuple[int, int], np.ndarray]
         if lf.centre is not None:
             by_window[lf.window_id].append(i)
     wids = sorted(by_window)
+    gate = max(cfg.max_match_distance_m, cfg.strong_match_distance_m)
+    # a box around each window's centres and medians: windows whose boxes lie farther apart than the gate
+    # hold no pair within it (a row's windows meet only their neighbours; this keeps the pairs linear in length)
+    box = {}
+    for w, idx in by_window.items():
+        pts = np.stack([p for i in idx for p in (fruits[i].centre, fruits[i].median) if p is not None])
+        box[w] = (pts.min(0), pts.max(0))
     edges: list[tuple[float, int, int]] = []
     for a_i, wa in enumerate(wids):
         for wb in wids[a_i + 1:]:
+            gap = np.maximum(0.0, np.maximum(box[wa][0] - box[wb][1], box[wb][0] - box[wa][1]))
+            if np.linalg.norm(gap) > gate:
+                continue
             ia, ib = by_window[wa], by_window[wb]
-            gate = max(cfg.max_match_distance_m, cfg.strong_match_distance_m)
             near = np.array([[centre_distance(fruits[i], fruits[j]) <= gate for j in ib] for i in ia])
             if not near.any():
                 continue

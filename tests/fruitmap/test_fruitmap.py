@@ -561,3 +561,21 @@ def test_the_fragment_rule_means_the_same_at_every_image_size():
     # images smaller than 320x180 are not scaled up; too few frames or points stay fragments
     assert reference_pixels(100, 64 * 40) == 100
     assert fruit_count.is_fragment(1, 5000, 5000.0, cfg) and fruit_count.is_fragment(5, 60, 5000.0, cfg)
+
+
+def test_associate_compares_only_windows_whose_fruits_lie_within_the_gate(monkeypatch):
+    cfg = panoptic_fusion.Config(max_match_distance_m=0.04, strong_match_distance_m=0.08)
+    fruits = []
+    for w in range(6):  # windows 0.5 m apart along the row; neighbours share a fruit at their meeting point
+        for x in (0.5 * w, 0.5 * w + 0.25):
+            c = np.array([x + 0.002 * w, 0.0, 1.0])
+            fruits.append(panoptic_fusion.LocalFruit(w, len(fruits), 0, [(0, 0)], 50, 2, c, median=c))
+        c = np.array([0.5 * w + 0.5 + 0.002 * w, 0.0, 1.0])  # the next window's first fruit, seen from here
+        fruits.append(panoptic_fusion.LocalFruit(w, len(fruits), 0, [(0, 0)], 50, 2, c, median=c))
+    compared = []
+    real = panoptic_fusion.centre_distance
+    monkeypatch.setattr(panoptic_fusion, "centre_distance",
+                        lambda a, b: compared.append((a.window_id, b.window_id)) or real(a, b))
+    groups = panoptic_fusion.associate(fruits, {}, cfg)
+    assert set(compared) == {(w, w + 1) for w in range(5)}  # only neighbours are compared
+    assert sorted(len(g) for g in groups) == [1] * 8 + [2] * 5  # and every shared fruit is matched
