@@ -60,6 +60,12 @@ class Config:
     image (nerf.config.BASE_PIXELS; x 1/16 at 1280x720). The second part keeps the rule's meaning at every
     image size: a fruit covers 16 times the pixels at 1280x720, and its points are capped per frame
     (max_points_per_view). Up to 320x180 it is implied by the first."""
+    max_count_diameter_m: float = 0.15
+    """metres, > 0. A fruit whose measured diameter (diameter_m) exceeds this is not one fruit but pieces of
+    several, or of a fruit and what lies behind it, under one id (most often a slot a window paints while
+    fruits enter or leave its first or last frames): listed in fruits.parquet with counted = false. Set it
+    about 1.5 times the largest fruit diameter of the crop; a very large value switches the rule off. Fruits
+    without a size (diameter null) are not affected."""
     detector_cover: float = 0.3
     """share in (0, 1]: a fused frame confirms a fruit when the detector's thing segments of that frame cover at
     least this share of the fruit's pixels there (the detector is not the NeRF's input on validation frames, so
@@ -87,6 +93,8 @@ class Config:
         if self.min_points < 4 or self.max_points_per_view < 1:
             raise ValueError("fruit_count.min_points must be >= 4 (a sphere has 4 parameters) and "
                              "max_points_per_view >= 1")
+        if not self.max_count_diameter_m > 0:
+            raise ValueError(f"fruit_count.max_count_diameter_m must be > 0, got {self.max_count_diameter_m}")
         if not self.max_radius_m > 0:
             raise ValueError(f"fruit_count.max_radius_m must be > 0, got {self.max_radius_m}")
         if not 0 < self.detector_cover <= 1 or not 0 <= self.detector_alpha < 1:
@@ -127,6 +135,11 @@ def is_fragment(n_frames: int, n_points: int, ref_pixels: float, cfg: Config) ->
     """A fruit seen in under cfg.min_count_frames fused frames, or with under cfg.min_count_points inlier points
     or reference pixels (reference_pixels summed over its fused frames): not counted."""
     return n_frames < cfg.min_count_frames or min(n_points, ref_pixels) < cfg.min_count_points
+
+
+def oversize(diameter_m: float | None, cfg: Config) -> bool:
+    """A fruit measured wider than cfg.max_count_diameter_m: not one fruit, not counted (no size: not oversize)."""
+    return diameter_m is not None and bool(np.isfinite(diameter_m)) and diameter_m > cfg.max_count_diameter_m
 
 
 def measure(points: np.ndarray, cfg: Config) -> dict:
@@ -255,7 +268,7 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
         rows.append({"fruit_id": fruit, "class_id": cls, "class_name": class_name(cls),
                      "class_confidence": float(np.mean(v == cls)), **m, "median_depth_m": med_depth,
                      "near_row": near_row, "n_frames": n_frames,
-                     "counted": bool(near_row and not unconfirmed
+                     "counted": bool(near_row and not unconfirmed and not oversize(m["diameter_m"], cfg)
                                      and not is_fragment(n_frames, m["n_points"], ref_px[fruit], cfg)),
                      "n_confirmed_frames": confirmed.get(fruit, 0) if fruit in checked else None,
                      "detector_p": p_real,
@@ -284,6 +297,11 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
     if n_far:
         ctx.note(f"{n_far} fruits beyond {cfg.max_depth_m:g} m (far row) are in fruits.parquet with near_row = "
                  f"false and not counted")
+    big = fruits.near_row.astype(bool) & (fruits.diameter_m.astype(float) > cfg.max_count_diameter_m)
+    if big.any():
+        ctx.note(f"fruits {fruits.loc[big, 'fruit_id'].astype(int).tolist()}: measured wider than "
+                 f"{cfg.max_count_diameter_m:g} m (max_count_diameter_m), pieces of several fruits under one id: "
+                 f"in fruits.parquet with counted = false")
     n_frag = int((fruits.near_row.astype(bool) & ~fruits.counted.astype(bool)).sum())
     unconf = [f for f, (_, u) in support.items() if u]
     if unconf:
@@ -291,7 +309,9 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
                  f"{cfg.detector_alpha:g}): in fruits.parquet with counted = false")
     if n_frag:
         ctx.note(f"{n_frag} near-row fruits not counted: fragments (under {cfg.min_count_frames} fused frames or "
-                 f"under {cfg.min_count_points} points or pixels at 320x180) or unconfirmed by the detector; counted = false")
+                 f"under {cfg.min_count_points} points or pixels at 320x180), unconfirmed by the detector or wider than "
+                 f"max_count_diameter_m; counted = false")
     ctx.summary.update(fruits=len(fruits), counted=len(near), far_row=n_far, fragments=n_frag, unconfirmed=len(unconf),
+                       oversize=int(big.sum()),
                        **{f"count_{c}": int(n) for c, n in zip(counts.class_name, counts["count"])})
     return {"fruits": fruits, "counts": counts}

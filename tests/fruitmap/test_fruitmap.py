@@ -579,3 +579,25 @@ def test_associate_compares_only_windows_whose_fruits_lie_within_the_gate(monkey
     groups = panoptic_fusion.associate(fruits, {}, cfg)
     assert set(compared) == {(w, w + 1) for w in range(5)}  # only neighbours are compared
     assert sorted(len(g) for g in groups) == [1] * 8 + [2] * 5  # and every shared fruit is matched
+
+
+def test_a_fruit_wider_than_any_fruit_of_the_crop_is_not_counted():
+    cfg = fruit_count.Config()
+    rng = np.random.default_rng(3)
+
+    def cap(centre, r, n=400):  # the camera-facing half of a sphere (the camera looks along +z)
+        d = rng.normal(size=(n, 3))
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        d[:, 2] = -np.abs(d[:, 2])
+        return np.asarray(centre) + r * d
+
+    one = fruit_count.measure(cap([0, 0, 1], 0.035), cfg)
+    assert abs(one["diameter_m"] - 0.07) < 0.01 and not fruit_count.oversize(one["diameter_m"], cfg)
+    # one id over two fruits side by side and the leaves between them: measured wider than any pepper
+    two = fruit_count.measure(np.concatenate([cap([-0.06, 0, 1], 0.035), cap([0.06, 0, 1], 0.035),
+                                              rng.uniform([-0.06, -0.03, 1.0], [0.06, 0.03, 1.02], (300, 3))]), cfg)
+    assert two["diameter_m"] > cfg.max_count_diameter_m and fruit_count.oversize(two["diameter_m"], cfg)
+    assert not fruit_count.oversize(None, cfg) and not fruit_count.oversize(float("nan"), cfg)
+    assert not fruit_count.oversize(two["diameter_m"], fruit_count.Config(max_count_diameter_m=1e6))  # off
+    with pytest.raises(ValueError, match="max_count_diameter_m"):
+        fruit_count.Config(max_count_diameter_m=0)
