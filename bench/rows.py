@@ -45,7 +45,7 @@ def row_settings(name: str, quick: bool) -> list[str]:
 def run_row(name: str, quick: bool, data_root: Path, force: bool) -> dict:
     seq = f"synth_rows{'q' if quick else ''}_{name}"
     run = run_variant(seq, row_settings(name, quick), data_root, force=force)
-    rec = {"row": name, **family_row(name).knobs(), **run.quality, **quality(data_root, seq, ID_FAILURES),
+    rec = {"row": name, **family_row(name).knobs(), **quality(data_root, seq, QUALITY | ID_FAILURES),
            "minutes": run.stage_minutes(),
            "peak_rss_mb": run.peak_rss_mb(), "seq": seq}
     if quick:

@@ -252,6 +252,7 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
     n_windows = slots[slots.fruit_id > 0].groupby("fruit_id").window_id.nunique()
     support = detector_support(checked, confirmed, cfg.detector_alpha)
     rows, cloud_pts, cloud_ids = [], [], []
+    too_wide: list[int] = []  # near-row fruits not counted by the oversize rule
     for fruit in ctx.progress(sorted(seen), "measure fruits", total=len(seen)):
         if fruit not in points:
             ctx.count("fruits_without_depth")
@@ -264,11 +265,14 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
         cls = int(np.bincount(things).argmax()) if len(things) else int(np.bincount(v).argmax())
         med_depth = float(np.median(np.concatenate(depths[fruit])))
         near_row, n_frames = med_depth <= cfg.max_depth_m, len(set(seen[fruit]))
+        wide = oversize(m["diameter_m"], cfg)
+        if near_row and wide:
+            too_wide.append(fruit)
         p_real, unconfirmed = support.get(fruit, (None, False))
         rows.append({"fruit_id": fruit, "class_id": cls, "class_name": class_name(cls),
                      "class_confidence": float(np.mean(v == cls)), **m, "median_depth_m": med_depth,
                      "near_row": near_row, "n_frames": n_frames,
-                     "counted": bool(near_row and not unconfirmed and not oversize(m["diameter_m"], cfg)
+                     "counted": bool(near_row and not unconfirmed and not wide
                                      and not is_fragment(n_frames, m["n_points"], ref_px[fruit], cfg)),
                      "n_confirmed_frames": confirmed.get(fruit, 0) if fruit in checked else None,
                      "detector_p": p_real,
@@ -297,9 +301,8 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
     if n_far:
         ctx.note(f"{n_far} fruits beyond {cfg.max_depth_m:g} m (far row) are in fruits.parquet with near_row = "
                  f"false and not counted")
-    big = fruits.near_row.astype(bool) & (fruits.diameter_m.astype(float) > cfg.max_count_diameter_m)
-    if big.any():
-        ctx.note(f"fruits {fruits.loc[big, 'fruit_id'].astype(int).tolist()}: measured wider than "
+    if too_wide:
+        ctx.note(f"fruits {too_wide}: measured wider than "
                  f"{cfg.max_count_diameter_m:g} m (max_count_diameter_m), pieces of several fruits under one id: "
                  f"in fruits.parquet with counted = false")
     n_frag = int((fruits.near_row.astype(bool) & ~fruits.counted.astype(bool)).sum())
@@ -312,6 +315,6 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
                  f"under {cfg.min_count_points} points or pixels at 320x180), unconfirmed by the detector or wider than "
                  f"max_count_diameter_m; counted = false")
     ctx.summary.update(fruits=len(fruits), counted=len(near), far_row=n_far, fragments=n_frag, unconfirmed=len(unconf),
-                       oversize=int(big.sum()),
+                       oversize=len(too_wide),
                        **{f"count_{c}": int(n) for c, n in zip(counts.class_name, counts["count"])})
     return {"fruits": fruits, "counts": counts}
