@@ -17,7 +17,7 @@ from pipeline.classes import THING_IDS, VOID
 from pipeline.images import ImageError, write_png
 from pipeline.stage import StageContext
 from rowmap.geometry import POSE_COLS, pixel_groups, subsample, surface_centre, window_alignments
-from rowmap.renders import PANOPTIC_KINDS, Renders
+from rowmap.renders import PANOPTIC_KINDS, Renders, encode
 
 INPUTS = ("frames", "windows", "window_poses", "window_metrics", "nerf", "renders")
 MAX_GROUPS = 256
@@ -72,9 +72,11 @@ class Config:
     (median where no plausible fit), 'median' = median of the seen surface points (biased towards the
     cameras that saw it, so windows that saw a fruit from opposite sides disagree by centimetres). Use
     'median' for crops whose fruits are far from round."""
-    max_fruit_radius_m: float = 0.1
-    """metres, > 0: a sphere fit with a larger radius is not a fruit (a flat patch) and the median is used.
-    Set it somewhat above the largest fruit radius of the crop."""
+    max_fruit_radius_m: float = 0.06
+    """metres, > 0: a sphere fit with a larger radius is not a fruit (a flat patch, or pieces of several fruits
+    one slot painted) and the median is used; such a fruit gets no sphere for track_margin_m either, so it
+    takes no pixel from its neighbours. Set it somewhat above the largest fruit radius of the crop (sweet
+    pepper about 0.03-0.045 m; the same bound as nerf_fit.panoptic.complete_max_radius_m)."""
     align_windows: bool = True
     """bring every window into one row frame before fusing: each window refines its poses on its own, so two
     windows place one fruit where their own stretch of odometry put it, centimetres apart over a row with
@@ -92,6 +94,11 @@ class Config:
     (a fruit entering or leaving the image, or one behind it) gives that piece back to the fruit whose
     surface it is. Pixels on no sphere, and fruits without a plausible sphere, keep their id. About the
     rendered depth error; 0 = off."""
+    compose_shared_frames: bool = True
+    """in a frame several overlapping windows rendered, take each fruit's pixels from the window that saw the
+    fruit in the most rendered frames (then pixels), not every pixel from the window whose centre is nearest.
+    A window renders a fruit it saw only while the fruit entered or left its stretch of row smaller than it is,
+    or paints it with a neighbour's id; the neighbouring window saw it whole. Off = the nearest window only."""
     max_points_per_view: int = 400
     """points, >= 1: 3D points kept per slot and frame for the centre (evenly subsampled). More points cost
     time and change the centres little; lower it on large images to save time."""
@@ -370,6 +377,68 @@ def relabel_by_surface(inst: np.ndarray, depth: np.ndarray, k: np.ndarray, c2w: 
     return int(move.sum())
 
 
+def fused_labels(renders: Renders, wid: int, fid: int, shape: tuple[int, int], groups_px: dict,
+                 lut: dict[tuple[int, int, int], int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(semantic uint8, instance uint16 row-level fruit ids, depth m) of one window's render of a frame, its
+    slots' pixel groups mapped to fused fruits through `lut`; pixels of dropped slots become void."""
+    sem, inst, depth = read_render(renders, wid, fid, shape)
+    thing = np.isin(sem, THING_IDS) & (inst > 0)
+    out_inst = np.zeros(inst.shape, np.uint16)
+    out_sem = sem.astype(np.uint8)
+    group = np.zeros(inst.shape, np.int64)
+    if (wid, fid) in groups_px:
+        flat, g = groups_px[(wid, fid)]
+        group.ravel()[flat] = g
+    codes = code(inst.astype(np.int64), group)
+    for c in np.unique(codes[thing]):
+        m = thing & (codes == c)
+        fruit_id = lut.get((wid, fid, int(c)), 0)
+        if fruit_id:
+            out_inst[m] = fruit_id
+        else:
+            out_sem[m] = VOID
+    return out_sem, out_inst, depth
+
+
+def compose(labelled: list[tuple[np.ndarray, np.ndarray, np.ndarray]], wins: list[int],
+            support: dict[tuple[int, int], tuple[int, int]]) -> tuple[np.ndarray, np.ndarray, np.ndarray, bool]:
+    """One fused frame from the renders several windows made of it (`labelled`: fused_labels per window of
+    `wins`, the nearest window first). Each fruit takes its pixels from the window that saw it best among
+    those showing it here (most rendered frames, then pixels: `support` per (window, fruit)); a window that
+    sees a fruit only while it enters or leaves the window's stretch of row renders it smaller or paints it
+    with a neighbour's id. The nearest window's pixels win where two windows' chosen fruits overlap; pixels
+    no chosen fruit covers take the semantic and depth of the first window that shows no fruit there (void
+    where every window shows one). Returns (semantic, instance, depth, whether any pixel came from another
+    window than the nearest)."""
+    sem0, inst0, depth0 = labelled[0]
+    if len(labelled) == 1:
+        return sem0.copy(), inst0, depth0, False
+    best: dict[int, int] = {}
+    for j, (_, inst, _) in enumerate(labelled):
+        for f in np.unique(inst[inst > 0]).tolist():
+            s = support.get((wins[j], f), (0, 0))
+            if f not in best or s > support.get((wins[best[f]], f), (0, 0)):
+                best[f] = j
+    src = np.full(inst0.shape, -1, np.int64)       # the window each pixel is taken from
+    out_inst = np.zeros_like(inst0)
+    for j, (_, inst, _) in enumerate(labelled):
+        chosen = np.zeros(int(inst.max()) + 1, bool)
+        chosen[[f for f, b in best.items() if b == j and f < len(chosen)]] = True
+        m = (src < 0) & chosen[inst]
+        out_inst[m] = inst[m]
+        src[m] = j
+    for j, (_, inst, _) in enumerate(labelled):
+        m = (src < 0) & (inst == 0)
+        src[m] = j
+    out_sem = np.full(inst0.shape, VOID, np.uint8)
+    depth = depth0.copy()
+    for j, (sem, _, d) in enumerate(labelled):
+        m = src == j
+        out_sem[m] = sem[m]
+        depth[m] = d[m]
+    return out_sem, out_inst, depth, bool((src > 0).any())
+
+
 def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]:
     frames: pd.DataFrame = inputs["frames"].set_index("frame_id", drop=False)
     renders = Renders(inputs["renders"], ctx.data_root)
@@ -483,30 +552,32 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
         for f, g in lf.frames:
             lut[(lf.window_id, f, code(lf.slot, g))] = lf.fruit_id
 
-    # pass 4: one fused panoptic image per frame, from the window whose centre is nearest
+    # pass 4: one fused panoptic image per frame, from the window whose centre is nearest; in a frame several
+    # windows rendered, each fruit takes its pixels from the window that saw it best (compose_shared_frames)
+    support: dict[tuple[int, int], tuple[int, int]] = {}  # (window, fruit) -> (frames, pixels) over its renders
+    for lf in local:
+        if lf.fruit_id:
+            n_f, n_px = support.get((lf.window_id, lf.fruit_id), (0, 0))
+            support[(lf.window_id, lf.fruit_id)] = (n_f + len({f for f, _ in lf.frames}), n_px + lf.n_px)
     pick = views.assign(abs_off=views.offset.abs()).sort_values(["frame_id", "abs_off", "window_id"])
     n_win = views.groupby("frame_id").window_id.nunique()
     rows = []
-    for r in ctx.progress(pick.drop_duplicates("frame_id").itertuples(index=False), "write fused frames",
-                          total=int(pick.frame_id.nunique())):
-        wid, fid = int(r.window_id), int(r.frame_id)
+    for fid, frame_views in ctx.progress(pick.groupby("frame_id", sort=True), "write fused frames",
+                                         total=int(pick.frame_id.nunique())):
+        fid = int(fid)
         fr = frames.loc[fid]
-        sem, inst, depth = read_render(renders, wid, fid, (int(fr.height), int(fr.width)))
-        thing = np.isin(sem, THING_IDS) & (inst > 0)
-        out_inst = np.zeros(inst.shape, np.uint16)
-        out_sem = sem.astype(np.uint8)
-        group = np.zeros(inst.shape, np.int64)
-        if (wid, fid) in groups_px:
-            flat, g = groups_px[(wid, fid)]
-            group.ravel()[flat] = g
-        codes = code(inst.astype(np.int64), group)
-        for c in np.unique(codes[thing]):
-            m = thing & (codes == c)
-            fruit_id = lut.get((wid, fid, int(c)), 0)
-            if fruit_id:
-                out_inst[m] = fruit_id
-            else:
-                out_sem[m] = VOID
+        r = next(frame_views.itertuples(index=False))
+        wid = int(r.window_id)
+        shape = (int(fr.height), int(fr.width))
+        wins = [int(w) for w in frame_views.window_id] if cfg.compose_shared_frames else [wid]
+        labelled = [fused_labels(renders, w, fid, shape, groups_px, lut) for w in wins]
+        out_sem, out_inst, depth, composed = compose(labelled, wins, support)
+        depth_path = renders.relpath(wid, fid, "depth")
+        if composed:
+            ctx.count("frames_composed_from_several_windows")
+            depth_path = ctx.relpath("panoptic", f"depth/{fid:06d}.png")
+            (out_dir / "depth").mkdir(exist_ok=True)
+            write_png(out_dir / "depth" / f"{fid:06d}.png", encode("depth", depth))
         if spheres:
             before = out_inst.copy()
             moved = relabel_by_surface(out_inst, depth, np.array([fr.fx, fr.fy, fr.cx, fr.cy], np.float64), r.c2w,
@@ -523,7 +594,7 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
                      "semantic_path": ctx.relpath("panoptic", f"semantic/{name}"),
                      "instance_path": ctx.relpath("panoptic", f"instance/{name}"),
                      "rgb_path": renders.relpath(wid, fid, "rgb"),
-                     "depth_path": renders.relpath(wid, fid, "depth"),
+                     "depth_path": depth_path,
                      "n_fruits": int(len(np.unique(out_inst[out_inst > 0]))),
                      **dict(zip(POSE_COLS, pose_txyzq(r.c2w[None])[0].tolist()))})
     slots = pd.DataFrame([{

@@ -278,6 +278,68 @@ def test_fruit_pixels_on_another_fruits_surface_go_to_that_fruit():
         panoptic_fusion.Config(track_margin_m=-0.01)
 
 
+def test_each_fruit_of_a_frame_several_windows_rendered_comes_from_the_window_that_saw_it_best():
+    h, w = 8, 12
+    near_inst, other_inst = np.zeros((h, w), np.uint16), np.zeros((h, w), np.uint16)
+    near_sem, other_sem = np.full((h, w), 1, np.uint8), np.full((h, w), 0, np.uint8)
+    near_inst[0:4, 0:2] = 5                 # fruit 5: a sliver in the nearest window, which saw it in 2 frames
+    other_inst[0:4, 0:5] = 5                # ... and whole in the other window, which saw it in 9
+    near_inst[4:8, 4:8] = 6                 # fruit 6: only the nearest window shows it here
+    other_inst[5:8, 6:10] = 7               # fruit 7: only the other window; it overlaps fruit 6's pixels
+    near_sem[near_inst > 0], other_sem[other_inst > 0] = 3, 2
+    near_depth, other_depth = np.full((h, w), 1.0, np.float32), np.full((h, w), 2.0, np.float32)
+    support = {(0, 5): (2, 8), (1, 5): (9, 180), (0, 6): (4, 60), (1, 7): (3, 40)}
+    sem, inst, depth, composed = panoptic_fusion.compose(
+        [(near_sem, near_inst, near_depth), (other_sem, other_inst, other_depth)], [0, 1], support)
+    assert composed
+    assert (inst[0:4, 0:5] == 5).all() and (depth[0:4, 0:5] == 2.0).all() and (sem[0:4, 0:5] == 2).all()
+    assert (inst[4:8, 4:8] == 6).all() and (depth[4:8, 4:8] == 1.0).all()    # the nearest window wins overlaps
+    assert (inst == 7).sum() == (other_inst == 7).sum() - 6                  # the rest of fruit 7 is kept
+    stuff = inst == 0
+    assert (sem[stuff] == 1).all() and (depth[stuff] == 1.0).all()          # stuff from the nearest window
+    # equal support: the nearest window keeps its pixels; one window: its labels as they are
+    tie = {**support, (1, 5): (2, 8)}
+    assert (panoptic_fusion.compose([(near_sem, near_inst, near_depth), (other_sem, other_inst, other_depth)],
+                                    [0, 1], tie)[1] == 5).sum() == 8
+    sem1, inst1, depth1, composed1 = panoptic_fusion.compose([(near_sem, near_inst, near_depth)], [0], support)
+    assert not composed1 and (inst1 == near_inst).all() and (sem1 == near_sem).all()
+
+
+def test_a_frame_the_nearest_window_rendered_without_its_fruits_takes_them_from_the_other_window(
+        make_row, tiny_row_upstream):
+    windows = pd.read_parquet(tiny_row_upstream / "interim" / SEQ / "windows.parquet")
+    val = windows[windows.split == "val"].assign(d=lambda t: t.offset.abs()).sort_values(["frame_id", "d", "window_id"])
+    shared = val.groupby("frame_id").window_id.nunique().loc[lambda n: n > 1].index
+    nearest = {int(f): int(val[val.frame_id == f].window_id.iloc[0]) for f in shared}
+    assert nearest, "the tiny row's windows share no rendered frame"
+
+    def lose_fruits(wid: int, fid: int, sem: np.ndarray, slots: np.ndarray):
+        if nearest.get(fid) == wid:
+            sem, slots = np.where(slots > 0, 1, sem), np.zeros_like(slots)
+        return sem, slots
+
+    whole = make_row(name="whole")
+    whole.runner().run(["panoptic_fusion"], force=True)
+    row = make_row(hook=lose_fruits)
+    row.runner().run(["panoptic_fusion"], force=True)
+    pf = pd.read_parquet(row.processed / "panoptic_frames.parquet").set_index("frame_id")
+    pf_whole = pd.read_parquet(whole.processed / "panoptic_frames.parquet").set_index("frame_id")
+    n_fruit_px = 0
+    for f in nearest:
+        fused = read_label(row.root / pf.loc[f, "instance_path"], "fused")
+        expected = read_label(whole.root / pf_whole.loc[f, "instance_path"], "fused")
+        # every fruit pixel, from the other window (up to a few pixels the surface rule moves differently)
+        assert ((fused > 0) != (expected > 0)).sum() <= 0.01 * (expected > 0).sum()
+        n_fruit_px += int((fused > 0).sum())
+        if (fused > 0).any():
+            assert pf.loc[f, "window_id"] == nearest[f] and "panoptic/depth/" in pf.loc[f, "depth_path"]
+            assert (row.root / pf.loc[f, "depth_path"]).exists()
+    assert n_fruit_px > 0
+    row.runner("panoptic_fusion.compose_shared_frames=false").run(["panoptic_fusion"], force=True)
+    pf = pd.read_parquet(row.processed / "panoptic_frames.parquet").set_index("frame_id")
+    assert all((read_label(row.root / pf.loc[f, "instance_path"], "fused") == 0).all() for f in nearest)
+
+
 def drop_renders(row, kinds: tuple[str, ...], window: int | None = None) -> None:
     """Remove renders of `kinds` (of one window, or all) from disk and from renders.parquet."""
     table = pd.read_parquet(row.processed / "renders.parquet")
