@@ -42,7 +42,15 @@ class Config:
     are then in no window and their fruits are not counted). Ignored with max_windows."""
     min_overlap: int = 4
     """frames, >= 0 (at most half_width), that neighbouring windows share at least (cover_row). Shared frames
-    tie the windows' fruit ids and poses together in panoptic_fusion; more overlap costs more fits."""
+    tie the windows' fruit ids and poses together in panoptic_fusion; where the windows cannot grow that far
+    into a gap (max_extend), filler windows are added, so more overlap can cost more fits."""
+    grow_overlap: int = 12
+    """frames, >= 0 (at most half_width): neighbouring windows grow to share this many frames where they can
+    without exceeding max_extend (cover_row; never a filler window for it; below min_overlap = min_overlap).
+    A shared validation frame is rendered by both windows, and panoptic_fusion takes each of its fruits from
+    the window that saw the fruit longer (compose_shared_frames): a window renders the fruits entering or
+    leaving its stretch of row poorly (seen in few of its training frames), and with a wide overlap those
+    frames come from the neighbour. Growing costs render time for the added frames, not fit steps."""
     context_frames: int = 4
     """frames, >= 0, beyond each end of a window whose role is training also train it (never validate it): a
     fruit entering or leaving the view in a window's first or last validation frames is otherwise seen by one
@@ -60,8 +68,9 @@ class Config:
             raise ValueError("windows.max_windows, windows.unlabelled_spacing and windows.max_extend must be >= 0")
         if self.context_frames < 0:
             raise ValueError(f"windows.context_frames must be >= 0, got {self.context_frames}")
-        if self.min_overlap < 0:
-            raise ValueError(f"windows.min_overlap must be >= 0, got {self.min_overlap}")
+        if self.min_overlap < 0 or self.grow_overlap < 0:
+            raise ValueError(f"windows.min_overlap and windows.grow_overlap must be >= 0, got {self.min_overlap}, "
+                             f"{self.grow_overlap}")
 
 
 def centres(frame_ids: np.ndarray, labelled: np.ndarray, cfg: Config) -> tuple[np.ndarray, bool]:
@@ -101,14 +110,24 @@ def spans(centre_pos: list[int], n: int, cfg: Config) -> list[tuple[int, int, in
                 filled.append((max(0, c - hw), min(n - 1, c + hw), c))
         if i < len(out):
             filled.append(out[i])
-    # 2. extend neighbours to share min_overlap frames, and the end windows to the sequence ends
+    # 2. extend neighbours to share min_overlap frames (grow_overlap where max_extend allows), and the end
+    # windows to the sequence ends
     win = [list(s) for s in sorted(filled, key=lambda s: (s[0], s[2]))]
+    nominal = [tuple(w[:2]) for w in win]
     win[0][0], win[-1][1] = 0, n - 1
-    for a, b in zip(win, win[1:]):
+    target = max(overlap, min(cfg.grow_overlap, hw))
+    for (a, b), (na, nb) in zip(zip(win, win[1:]), zip(nominal, nominal[1:])):
         short = overlap - (a[1] - b[0] + 1)
-        if short > 0:
+        if short > 0:       # the fillers made this reachable within max_extend
             a[1] = min(n - 1, a[1] + (short + 1) // 2)
             b[0] = max(0, b[0] - short // 2)
+        short = target - (a[1] - b[0] + 1)
+        if short > 0:       # grow further where max_extend allows
+            grow_a = min((short + 1) // 2, max(0, na[1] + ext - a[1]))
+            grow_b = min(short - grow_a, max(0, b[0] - (nb[0] - ext)))
+            grow_a = min(short - grow_b, max(0, na[1] + ext - a[1]))
+            a[1] = min(n - 1, a[1] + grow_a)
+            b[0] = max(0, b[0] - grow_b)
     return [tuple(w) for w in win]
 
 

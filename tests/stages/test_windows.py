@@ -59,22 +59,24 @@ def test_max_windows_spreads_evenly():
 def test_bad_half_width():
     with pytest.raises(ValueError, match="half_width must be >= 1"):
         windows.Config(half_width=0)
-    with pytest.raises(ValueError, match="min_overlap must be >= 0"):
+    with pytest.raises(ValueError, match="min_overlap and windows.grow_overlap must be >= 0"):
         windows.Config(min_overlap=-1)
+    with pytest.raises(ValueError, match="grow_overlap must be >= 0"):
+        windows.Config(grow_overlap=-1)
 
 
 def test_cover_row_extends_windows_into_short_gaps_and_fills_long_ones():
     # 120 frames, labelled 30 / 60 / 89 (the default row): the end windows grow to the sequence ends
     w, ctx = run(120, {30, 60, 89}, half_width=20)
     span = w.groupby("window_id").frame_id.agg(["min", "max"])
-    assert span.values.tolist() == [[0, 50], [40, 80], [69, 119]]
+    assert span.values.tolist() == [[0, 51], [40, 80], [69, 119]]   # neighbours share min_overlap = 12
     assert ctx.summary["filler_windows"] == 0 and ctx.summary["frames_in_no_window"] == 0
     # 240 frames, labelled 60 / 120 / 179 (a longer row): the gaps of 18-19 frames between the windows are
     # closed by growing them (up to half_width per side), the 40 frames at either end get a filler window
     w, ctx = run(240, {60, 120, 179}, half_width=20)
     span = w.groupby("window_id").frame_id.agg(["min", "max"]).sort_values("min").to_numpy()
     assert ctx.summary["frames_in_no_window"] == 0 and ctx.summary["filler_windows"] == 2
-    assert (span[1:, 0] <= span[:-1, 1] - 3).all()                   # neighbours share >= 4 frames
+    assert (span[1:, 0] <= span[:-1, 1] - 11).all()                  # neighbours share >= 12 frames
     assert w[w.is_center].frame_id.tolist() == [60, 120, 179]          # fillers have no evaluation frame
     assert (w.groupby("window_id").size() <= 41 + 2 * 20).all()      # extensions stay within max_extend
     # with max_extend = 10 the same gaps need 4 fillers
@@ -93,6 +95,24 @@ def test_a_recording_with_a_labelled_frame_every_metre_needs_one_filler_per_end(
     span = w.groupby("window_id").frame_id.agg(["min", "max"]).sort_values("min").to_numpy()
     assert w.window_id.nunique() == 7 and ctx.summary["filler_windows"] == 2
     assert ctx.summary["frames_in_no_window"] == 0 and (span[1:, 0] <= span[:-1, 1] - 3).all()
+    assert (w.groupby("window_id").size() <= 41 + 2 * 20).all()      # grow_overlap stays within max_extend
+
+
+def test_neighbours_grow_to_share_grow_overlap_frames_where_max_extend_allows():
+    # 180 frames labelled every 45 frames: the 41-frame windows nearly touch and grow to share 12 frames
+    w, ctx = run(180, {22, 67, 112, 157}, half_width=20)
+    span = w.groupby("window_id").frame_id.agg(["min", "max"]).sort_values("min").to_numpy()
+    assert ctx.summary["filler_windows"] == 0
+    assert (span[:-1, 1] - span[1:, 0] + 1).tolist() == [12, 12, 12]
+    # without it they share min_overlap; a gap they cannot grow across leaves them at what max_extend allows
+    w0, _ = run(180, {22, 67, 112, 157}, half_width=20, grow_overlap=0)
+    span0 = w0.groupby("window_id").frame_id.agg(["min", "max"]).sort_values("min").to_numpy()
+    assert (span0[:-1, 1] - span0[1:, 0] + 1).tolist() == [4, 4, 4]
+    w3, ctx3 = run(160, {20, 60, 100, 140}, half_width=20, max_extend=3)     # windows [c-20, c+20] touch
+    span3 = w3.groupby("window_id").frame_id.agg(["min", "max"]).sort_values("min").to_numpy()
+    assert ctx3.summary["filler_windows"] == 0
+    assert (span3[:-1, 1] - span3[1:, 0] + 1).tolist() == [7, 7, 7]     # 1 + 3 on each side at most
+    assert (span3[1:-1, 1] - span3[1:-1, 0] + 1 <= 41 + 2 * 3).all()
     assert run(450, {75, 150, 224, 299, 374}, half_width=20, max_extend=10)[0].window_id.nunique() == 13
 
 
