@@ -412,7 +412,7 @@ def compose(labelled: list[tuple[np.ndarray, np.ndarray, np.ndarray]], wins: lis
     window than the nearest)."""
     sem0, inst0, depth0 = labelled[0]
     if len(labelled) == 1:
-        return sem0.copy(), inst0, depth0, False
+        return sem0, inst0, depth0, False
     best: dict[int, int] = {}
     for j, (_, inst, _) in enumerate(labelled):
         for f in np.unique(inst[inst > 0]).tolist():
@@ -423,7 +423,7 @@ def compose(labelled: list[tuple[np.ndarray, np.ndarray, np.ndarray]], wins: lis
     out_inst = np.zeros_like(inst0)
     for j, (_, inst, _) in enumerate(labelled):
         chosen = np.zeros(int(inst.max()) + 1, bool)
-        chosen[[f for f, b in best.items() if b == j and f < len(chosen)]] = True
+        chosen[[f for f, b in best.items() if b == j]] = True   # best[f] == j only for fruits window j shows
         m = (src < 0) & chosen[inst]
         out_inst[m] = inst[m]
         src[m] = j
