@@ -60,7 +60,8 @@ ROW_METRICS = [  # (metric, scope, label, format)
 ]
 
 
-HEADS = {"rows": "Row family (`pag bench rows`)", "count_rules": "Counting rules (`pag bench count_rules`)",
+HEADS = {"rows": "Row family (`pag bench rows`)", "rows_holdout": "Held-out rows (`pag bench rows --holdout`)",
+         "count_rules": "Counting rules (`pag bench count_rules`)",
          "scale": "Scale (`pag bench scale`)", "encoding": "Encoding (`pag bench encoding`)",
          "render": "Occupancy skipping and early termination (`pag bench render`)",
          "dask": "Dask workers (`pag bench dask`)", "real_row": "Real-size row (`pag bench real_row`)"}
@@ -99,19 +100,21 @@ def default_row_section(data_root: Path, seq: str) -> str:
 
 
 # -- the benches -------------------------------------------------------------------------------------
-def family_section(path: Path) -> str:
-    """`pag bench rows`: one line per row of the family, then the mean and the worst of each column."""
+def family_section(path: Path, name: str = "rows") -> str:
+    """`pag bench rows` (name 'rows': the family; 'rows_holdout': the held-out rows): one line per row, then
+    the mean and the worst of each column."""
+    from bench._row_family import FAMILY, HOLDOUT
+
+    members, what = (HOLDOUT, "held-out") if name == "rows_holdout" else (FAMILY, "family's")
     df = pd.read_parquet(path)
     num = [c for c in df.columns if pd.api.types.is_numeric_dtype(df[c]) and c != "row"]
     show = df[["row"] + num] if "row" in df.columns else df[num]
-    head = f"{HEADS['rows']}, commit `{table_commit(path)}`"
+    head = f"{HEADS[name]}, commit `{table_commit(path)}`"
     if "row" in df.columns:
-        from bench._row_family import FAMILY
-
-        done = [r.name for r in FAMILY if r.name in set(df["row"])]
-        if len(done) < len(FAMILY):
-            missing = ", ".join(r.name for r in FAMILY if r.name not in done)
-            head += (f"; {len(done)} of the family's {len(FAMILY)} rows finished (not yet run: {missing}), so the "
+        done = [r.name for r in members if r.name in set(df["row"])]
+        if len(done) < len(members):
+            missing = ", ".join(r.name for r in members if r.name not in done)
+            head += (f"; {len(done)} of the {what} {len(members)} rows finished (not yet run: {missing}), so the "
                      f"mean and worst rows cover those {len(done)} only")
     return head + ":\n\n" + markdown(show)
 
@@ -234,6 +237,7 @@ def build(data_root: Path, bench_dir: Path, seq: str, extra: list[str] = (), pre
             parts.append(make(path))  # says itself that nothing is on disk
 
     add("rows", bench_dir / "rows.parquet", family_section)
+    add("rows_holdout", bench_dir / "rows_holdout.parquet", lambda p: family_section(p, "rows_holdout"))
     add("count_rules", bench_dir / "count_rules.parquet", count_rules_section)
     add("scale", bench_dir / "scale.parquet", scale_section)
     add("real_row", bench_dir / "real_row.parquet", real_row_section)
@@ -242,7 +246,9 @@ def build(data_root: Path, bench_dir: Path, seq: str, extra: list[str] = (), pre
     for name in ["encoding", "render", "dask", *extra]:
         add(name, bench_dir / f"{name}.parquet", SECTIONS.get(name, lambda p, n=name: generic_section(n, p)))
     if missing:
-        parts.append("Not measured in this checkout: " + ", ".join(f"`pag bench {m}`" for m in missing) + ".")
+        commands = {"rows_holdout": "rows --holdout"}
+        parts.append("Not measured in this checkout: "
+                     + ", ".join(f"`pag bench {commands.get(m, m)}`" for m in missing) + ".")
     return "\n\n".join(parts)
 
 

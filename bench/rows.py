@@ -1,13 +1,15 @@
 """The whole pipeline on a fixed family of synthetic rows (bench/_row_family.py): count, identity, panoptic
 and size errors, PSNR and cost per row, with the mean and the worst row.
 
-    pag bench rows [--rows NAME,NAME] [--quick] [--force] [--data-root data] [--out data/bench]
+    pag bench rows [--rows NAME,NAME] [--quick | --holdout] [--force] [--data-root data] [--out data/bench]
 
 Each row is the sequence synth_rows_<name> under --data-root (the normal pipeline outputs, report included).
 Checkpointed: a finished row's results are kept in <out>/rows/<name>.json and the row is skipped on a rerun
 (--force reruns it); a row stopped half-way resumes at the stage it stopped in. The table is rebuilt from
 every finished row each time. `--quick` runs 4 rows with tiny images and few steps (a smoke test of the
 harness; its numbers mean nothing) into rows_quick.* and sequences synth_rowsq_<name>.
+`--holdout` runs the held-out rows (bench/_row_family.py HOLDOUT: seeds and knob values in no family row)
+into rows_holdout.*, the check that what holds on the family is not tuned to it.
 Writes <out>/rows.parquet (one row per family row, then 'mean' and 'worst') and <out>/rows.png.
 """
 from __future__ import annotations
@@ -22,7 +24,7 @@ import pandas as pd
 
 from bench._common import write_parquet
 from bench._pipeline import QUALITY, TINY, quality, run_variant, settings
-from bench._row_family import FAMILY, QUICK, family_row
+from bench._row_family import FAMILY, HOLDOUT, QUICK, family_row
 from pipeline.io import atomic_write_bytes
 
 ID_FAILURES = {f"id_fail_{k}": (("row", f"id_fail_{k}"),) for k in ("unlabelled", "shared", "split")}
@@ -99,8 +101,10 @@ def plot(df: pd.DataFrame, path: Path) -> None:
 
 
 def run(names: list[str], quick: bool = False, force: bool = False, data_root: Path = Path("data"),
-        out_dir: Path = Path("data/bench")) -> pd.DataFrame:
-    tag = "rows_quick" if quick else "rows"
+        out_dir: Path = Path("data/bench"), tag: str = "") -> pd.DataFrame:
+    """Runs the rows `names` not done yet, then rebuilds the table <out_dir>/<tag>.parquet from every finished
+    row of <out_dir>/<tag>/ (tag: 'rows', 'rows_quick' with `quick`, or as given)."""
+    tag = tag or ("rows_quick" if quick else "rows")
     done_dir = out_dir / tag
     done_dir.mkdir(parents=True, exist_ok=True)
     for name in names:
@@ -113,7 +117,7 @@ def run(names: list[str], quick: bool = False, force: bool = False, data_root: P
         atomic_write_bytes(done, json.dumps(rec, indent=1).encode())
         print(f"[bench rows] {name}: {rec['minutes']:.1f} min, count error {rec['count_error_rel']:+.3f}, "
               f"PQ {rec['pq']:.3f}", file=sys.stderr)
-    order = [r.name for r in FAMILY]
+    order = [r.name for r in (*FAMILY, *HOLDOUT)]
     recs = [json.loads(p.read_text()) for p in done_dir.glob("*.json")]
     recs.sort(key=lambda r: order.index(r["row"]) if r["row"] in order else len(order))
     df = summarise(pd.DataFrame(recs))
@@ -126,18 +130,24 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="pag bench rows", description=__doc__.split("\n")[0])
     p.add_argument("--rows", default="", help=f"comma-separated subset of {[r.name for r in FAMILY]} (default: all)")
     p.add_argument("--quick", action="store_true", help=f"the 4-row smoke run {list(QUICK)} with tiny settings")
+    p.add_argument("--holdout", action="store_true",
+                   help=f"the held-out rows {[r.name for r in HOLDOUT]} (in no family row's seed or knobs)")
     p.add_argument("--force", action="store_true", help="rerun rows (and their stages) that are done")
     p.add_argument("--data-root", type=Path, default=Path("data"))
     p.add_argument("--out", type=Path, default=Path("data/bench"))
     a = p.parse_args(argv)
-    names = [n.strip() for n in a.rows.split(",") if n.strip()] or (list(QUICK) if a.quick else [r.name for r in FAMILY])
+    if a.quick and a.holdout:
+        p.error("--quick and --holdout exclude each other")
+    default = list(QUICK) if a.quick else [r.name for r in (HOLDOUT if a.holdout else FAMILY)]
+    names = [n.strip() for n in a.rows.split(",") if n.strip()] or default
     for n in names:
         family_row(n)  # unknown names fail before anything runs
-    df = run(names, a.quick, a.force, a.data_root, a.out)
+    tag = "rows_holdout" if a.holdout else "rows_quick" if a.quick else "rows"
+    df = run(names, a.quick, a.force, a.data_root, a.out, tag)
     cols = ["row", "count_error_rel", "recall", "precision", "row_id_consistency", "pq", "pq_detector", "psnr_db",
             "minutes"]
     print(df[cols].to_string(index=False, float_format=lambda v: f"{v:.3f}"))
-    print(f"wrote {a.out / ('rows_quick' if a.quick else 'rows')}.parquet and .png")
+    print(f"wrote {a.out / tag}.parquet and .png")
     return 0
 
 

@@ -70,13 +70,15 @@ class Config:
     """share in (0, 1]: a fused frame confirms a fruit when the detector's thing segments of that frame cover at
     least this share of the fruit's pixels there (the detector is not the NeRF's input on validation frames, so
     it is an independent witness). Lower it for detectors with tight or partial masks."""
-    detector_alpha: float = 0.01
+    detector_alpha: float = 0.05
     """probability in [0, 1); 0 = off. A fruit is unconfirmed (counted = false) when it is confirmed in under
     half the share of frames the row's fruits are confirmed in on average (the detector's recall r) AND, were
     it real, so few confirmations out of its n frames would have a chance under this (binomial:
     P(X <= k | n, r)). That is what the NeRF renders from a detector false positive in a few training frames,
-    which the validation frames' detections never repeat. Lower it to drop fewer fruits, 0 with a detector
-    that misses fruits in many frames."""
+    which the validation frames' detections never repeat. The level bounds how short-lived a phantom can be
+    and still be caught: with r = 0.9 a fruit confirmed in none of 2 frames has P = 0.01, of 3 frames 0.001;
+    with r = 0.8, 0.04 and 0.008. Lower it to drop fewer fruits, 0 with a detector that misses fruits in
+    many frames."""
     max_fit_extent_ratio: float = 2.0
     """>= 1. A surface fit whose diameter (or length) exceeds this multiple of the largest extent of the points
     is rejected too: it extrapolates a whole fruit from a small cap (a fruit seen only as a sliver over or past

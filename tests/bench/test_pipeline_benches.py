@@ -7,7 +7,7 @@ import pandas as pd
 import pytest
 
 from bench import _pipeline, count_rules, rows, scale
-from bench._row_family import FAMILY, QUICK, family_row
+from bench._row_family import FAMILY, HOLDOUT, QUICK, family_row
 
 
 def test_family_spans_the_required_knobs():
@@ -22,6 +22,17 @@ def test_family_spans_the_required_knobs():
     assert len(QUICK) == 4 and all(family_row(n) for n in QUICK)
     with pytest.raises(ValueError, match="no row 'nope' in the family; rows:"):
         family_row("nope")
+
+
+def test_holdout_rows_share_no_seed_or_knob_set_with_the_family():
+    assert HOLDOUT and len({r.name for r in (*FAMILY, *HOLDOUT)}) == len(FAMILY) + len(HOLDOUT)
+    assert not {r.seed for r in HOLDOUT} & {r.seed for r in FAMILY}
+    knobs = [{k: v for k, v in r.knobs().items() if k != "seed"} for r in FAMILY]
+    for r in HOLDOUT:
+        assert {k: v for k, v in r.knobs().items() if k != "seed"} not in knobs
+        assert 8 <= r.fruits_per_m <= 40 and r.n_frames % 40 == 0 and family_row(r.name) is r
+    with pytest.raises(SystemExit):
+        rows.main(["--quick", "--holdout"])
 
 
 def test_growth_exponent():

@@ -59,6 +59,13 @@ def test_a_partly_run_family_says_which_rows_its_mean_covers(tmp_path):
     whole = pd.DataFrame({"row": [r.name for r in FAMILY] + ["mean"], "count_error_rel": 0.0})
     write_parquet(whole, tmp_path / "rows.parquet")
     assert "not yet run" not in results.family_section(tmp_path / "rows.parquet")
+    # the held-out rows have their own head and their own list of rows
+    from bench._row_family import HOLDOUT
+    write_parquet(pd.DataFrame({"row": [HOLDOUT[0].name, "mean"], "count_error_rel": 0.0}),
+                  tmp_path / "rows_holdout.parquet")
+    text = results.family_section(tmp_path / "rows_holdout.parquet", "rows_holdout")
+    assert text.startswith("Held-out rows (`pag bench rows --holdout`)")
+    assert f"1 of the held-out {len(HOLDOUT)} rows finished" in text and HOLDOUT[1].name in text
 
 
 def test_count_rules_section_lists_each_row_and_each_verdict(tmp_path):
@@ -123,6 +130,7 @@ def test_a_table_not_on_disk_keeps_the_readme_section_with_its_commit(tmp_path):
     assert "| a |\n|---|\n| 1 |" in text.split("Encoding")[1]
     # tables on disk replace their old sections; what is in neither place is named
     assert "commit `new111`" in text and "| PQ | 0.5 |" not in text and "| 7 |" not in text
-    assert text.rstrip().endswith("Not measured in this checkout: `pag bench rows`, `pag bench count_rules`, "
+    assert text.rstrip().endswith("Not measured in this checkout: `pag bench rows`, `pag bench rows --holdout`, "
+                                  "`pag bench count_rules`, "
                                   "`pag bench scale`, `pag bench real_row`, `pag bench render`.")
     assert results.current_block(f"x\n{results.START}\n{old}\n{results.END}\n").strip() == old

@@ -431,6 +431,12 @@ def test_fruits_the_detector_never_confirms_are_not_counted():
     confirmed = {f: 30 for f in range(1, 20)} | {20: 27}
     assert not any(u for _, u in fruit_count.detector_support(checked, confirmed, alpha=0.01).values())
     assert fruit_count.detector_support({}, {}, alpha=0.01) == {}
+    # at the default level, a fruit seen in 2 frames and confirmed in neither is a phantom under a detector
+    # that confirms 90 % of the fruits' frames; one confirmed in 2 of 4 frames is kept
+    checked = {f: 10 for f in range(1, 11)} | {11: 2, 12: 4}
+    confirmed = {f: 9 for f in range(1, 11)} | {11: 0, 12: 2}
+    out = fruit_count.detector_support(checked, confirmed, alpha=fruit_count.Config().detector_alpha)
+    assert [f for f, (_, u) in out.items() if u] == [11]
 
 
 def test_counted_fruits_are_confirmed_by_the_detector(perfect_row):
