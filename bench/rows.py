@@ -128,7 +128,8 @@ def run(names: list[str], quick: bool = False, force: bool = False, data_root: P
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="pag bench rows", description=__doc__.split("\n")[0])
-    p.add_argument("--rows", default="", help=f"comma-separated subset of {[r.name for r in FAMILY]} (default: all)")
+    p.add_argument("--rows", default="", help=f"comma-separated subset of {[r.name for r in FAMILY]} (default: all), "
+                   f"or with --holdout of {[r.name for r in HOLDOUT]}")
     p.add_argument("--quick", action="store_true", help=f"the 4-row smoke run {list(QUICK)} with tiny settings")
     p.add_argument("--holdout", action="store_true",
                    help=f"the held-out rows {[r.name for r in HOLDOUT]} (in no family row's seed or knobs)")
@@ -142,6 +143,10 @@ def main(argv: list[str] | None = None) -> int:
     names = [n.strip() for n in a.rows.split(",") if n.strip()] or default
     for n in names:
         family_row(n)  # unknown names fail before anything runs
+    allowed = {r.name for r in (HOLDOUT if a.holdout else FAMILY)}
+    if not a.quick and set(names) - allowed:
+        p.error(f"{sorted(set(names) - allowed)} are {'family' if a.holdout else 'held-out'} rows: "
+                f"{'drop' if a.holdout else 'add'} --holdout (the two tables are kept apart)")
     tag = "rows_holdout" if a.holdout else "rows_quick" if a.quick else "rows"
     df = run(names, a.quick, a.force, a.data_root, a.out, tag)
     cols = ["row", "count_error_rel", "recall", "precision", "row_id_consistency", "pq", "pq_detector", "psnr_db",

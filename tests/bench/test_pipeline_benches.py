@@ -31,8 +31,9 @@ def test_holdout_rows_share_no_seed_or_knob_set_with_the_family():
     for r in HOLDOUT:
         assert {k: v for k, v in r.knobs().items() if k != "seed"} not in knobs
         assert 8 <= r.fruits_per_m <= 40 and r.n_frames % 40 == 0 and family_row(r.name) is r
-    with pytest.raises(SystemExit):
-        rows.main(["--quick", "--holdout"])
+    for argv in (["--quick", "--holdout"], ["--rows", HOLDOUT[0].name], ["--holdout", "--rows", FAMILY[0].name]):
+        with pytest.raises(SystemExit):  # before anything runs
+            rows.main(argv)
 
 
 def test_growth_exponent():
