@@ -61,6 +61,7 @@ ROW_METRICS = [  # (metric, scope, label, format)
 
 
 HEADS = {"rows": "Row family (`pag bench rows`)", "rows_holdout": "Held-out rows (`pag bench rows --holdout`)",
+         "rows_seeds": "Row family on other fit seeds (`pag bench rows --fit-seed N`)",
          "count_rules": "Counting rules (`pag bench count_rules`)",
          "scale": "Scale (`pag bench scale`)", "encoding": "Encoding (`pag bench encoding`)",
          "render": "Occupancy skipping and early termination (`pag bench render`)",
@@ -117,6 +118,37 @@ def family_section(path: Path, name: str = "rows") -> str:
             head += (f"; {len(done)} of the {what} {len(members)} rows finished (not yet run: {missing}), so the "
                      f"mean and worst rows cover those {len(done)} only")
     return head + ":\n\n" + markdown(show)
+
+
+SEED_COLUMNS = ["count_error_rel", "recall", "precision", "row_id_consistency", "pq", "diameter_median_err_m",
+                "psnr_db"]
+"""Columns of the fit-seed comparison."""
+
+
+def seeds_section(bench_dir: Path) -> str:
+    """`pag bench rows --fit-seed N`: each row fitted on another seed beside the same row of rows.parquet
+    (seed 0), so the spread between fits of one recording shows."""
+    tables = sorted(bench_dir.glob("rows_seed*.parquet"))
+    parts, commits = [], []
+    base_path = bench_dir / "rows.parquet"
+    base = pd.read_parquet(base_path) if base_path.is_file() else pd.DataFrame(columns=["row"])
+    if base_path.is_file():
+        commits.append(f"seed 0: `{table_commit(base_path)}`")
+    for path in tables:
+        df = pd.read_parquet(path)
+        df = df[~df.row.isin(["mean", "worst"])]
+        seed = int(df.fit_seed.iloc[0]) if "fit_seed" in df and len(df) else path.stem.removeprefix("rows_seed")
+        commits.append(f"seed {seed}: `{table_commit(path)}`")
+        parts.append(df.assign(seed=seed))
+        parts.append(base[base.row.isin(set(df.row))].assign(seed=0))
+    both = pd.concat(parts, ignore_index=True).drop_duplicates(["row", "seed"]) if parts else pd.DataFrame()
+    if both.empty:
+        return f"{HEADS['rows_seeds']}: no table on disk."
+    order = {name: i for i, name in enumerate(dict.fromkeys(both.row))}
+    both = both.sort_values(["row", "seed"], key=lambda c: c.map(order) if c.name == "row" else c)
+    cols = ["row", "seed", *(c for c in SEED_COLUMNS if c in both.columns)]
+    return (f"{HEADS['rows_seeds']}, commits {', '.join(commits)}; each row's windows fitted again with another "
+            f"nerf_fit.seed (same recording):\n\n" + markdown(both[cols]))
 
 
 def count_rules_section(path: Path) -> str:
@@ -238,6 +270,9 @@ def build(data_root: Path, bench_dir: Path, seq: str, extra: list[str] = (), pre
 
     add("rows", bench_dir / "rows.parquet", family_section)
     add("rows_holdout", bench_dir / "rows_holdout.parquet", lambda p: family_section(p, "rows_holdout"))
+    if any(bench_dir.glob("rows_seed*.parquet")) or "rows_seeds" in kept:
+        add("rows_seeds", next(iter(sorted(bench_dir.glob("rows_seed*.parquet"))), bench_dir / "rows_seed1.parquet"),
+            lambda _: seeds_section(bench_dir))
     add("count_rules", bench_dir / "count_rules.parquet", count_rules_section)
     add("scale", bench_dir / "scale.parquet", scale_section)
     add("real_row", bench_dir / "real_row.parquet", real_row_section)

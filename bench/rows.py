@@ -1,7 +1,8 @@
 """The whole pipeline on a fixed family of synthetic rows (bench/_row_family.py): count, identity, panoptic
 and size errors, PSNR and cost per row, with the mean and the worst row.
 
-    pag bench rows [--rows NAME,NAME] [--quick | --holdout] [--force] [--data-root data] [--out data/bench]
+    pag bench rows [--rows NAME,NAME] [--quick | --holdout] [--fit-seed N] [--force] [--data-root data]
+                   [--out data/bench]
 
 Each row is the sequence synth_rows_<name> under --data-root (the normal pipeline outputs, report included).
 Checkpointed: a finished row's results are kept in <out>/rows/<name>.json and the row is skipped on a rerun
@@ -10,6 +11,10 @@ every finished row each time. `--quick` runs 4 rows with tiny images and few ste
 harness; its numbers mean nothing) into rows_quick.* and sequences synth_rowsq_<name>.
 `--holdout` runs the held-out rows (bench/_row_family.py HOLDOUT: seeds and knob values in no family row)
 into rows_holdout.*, the check that what holds on the family is not tuned to it.
+`--fit-seed N` (N >= 1) fits every window with nerf_fit.seed = N (the same recording, other random rays and
+initial weights) into rows_seed<N>.* (rows_holdout_seed<N>.* with --holdout) and sequences
+synth_rows_<name>_seed<N>: the spread between seeds is the fit-to-fit variance any change of the model has
+to exceed to be seen.
 Writes <out>/rows.parquet (one row per family row, then 'mean' and 'worst') and <out>/rows.png.
 """
 from __future__ import annotations
@@ -36,18 +41,26 @@ LOWER_IS_BETTER = {"diameter_median_err_m", "minutes", "peak_rss_mb", *ID_FAILUR
 quality columns the worst is the smallest."""
 
 
-def row_settings(name: str, quick: bool) -> list[str]:
+def row_settings(name: str, quick: bool, fit_seed: int = 0) -> list[str]:
     knobs = {f"synth.{k}": v for k, v in family_row(name).knobs().items()}
     if quick:
         knobs.update(TINY)
         knobs.update({"synth.n_frames": 14, "synth.n_labelled": 2})
+    if fit_seed:
+        knobs["nerf_fit.seed"] = fit_seed
     return settings(knobs)
 
 
-def run_row(name: str, quick: bool, data_root: Path, force: bool) -> dict:
-    seq = f"synth_rows{'q' if quick else ''}_{name}"
-    run = run_variant(seq, row_settings(name, quick), data_root, force=force)
-    rec = {"row": name, **family_row(name).knobs(), **quality(data_root, seq, QUALITY | ID_FAILURES),
+def row_seq(name: str, quick: bool = False, fit_seed: int = 0) -> str:
+    """The sequence a row runs as: synth_rows_<name> (synth_rowsq_ with --quick, _seed<N> with --fit-seed)."""
+    return f"synth_rows{'q' if quick else ''}_{name}" + (f"_seed{fit_seed}" if fit_seed else "")
+
+
+def run_row(name: str, quick: bool, data_root: Path, force: bool, fit_seed: int = 0) -> dict:
+    seq = row_seq(name, quick, fit_seed)
+    run = run_variant(seq, row_settings(name, quick, fit_seed), data_root, force=force)
+    rec = {"row": name, **family_row(name).knobs(), **({"fit_seed": fit_seed} if fit_seed else {}),
+           **quality(data_root, seq, QUALITY | ID_FAILURES),
            "minutes": run.stage_minutes(),
            "peak_rss_mb": run.peak_rss_mb(), "seq": seq}
     if quick:
@@ -101,7 +114,7 @@ def plot(df: pd.DataFrame, path: Path) -> None:
 
 
 def run(names: list[str], quick: bool = False, force: bool = False, data_root: Path = Path("data"),
-        out_dir: Path = Path("data/bench"), tag: str = "") -> pd.DataFrame:
+        out_dir: Path = Path("data/bench"), tag: str = "", fit_seed: int = 0) -> pd.DataFrame:
     """Runs the rows `names` not done yet, then rebuilds the table <out_dir>/<tag>.parquet from every finished
     row of <out_dir>/<tag>/ (tag: 'rows', 'rows_quick' with `quick`, or as given)."""
     tag = tag or ("rows_quick" if quick else "rows")
@@ -113,7 +126,7 @@ def run(names: list[str], quick: bool = False, force: bool = False, data_root: P
             print(f"[bench rows] {name}: done before, skipped ({done})", file=sys.stderr)
             continue
         print(f"[bench rows] {name}: running", file=sys.stderr)
-        rec = run_row(name, quick, data_root, force)
+        rec = run_row(name, quick, data_root, force, fit_seed)
         atomic_write_bytes(done, json.dumps(rec, indent=1).encode())
         print(f"[bench rows] {name}: {rec['minutes']:.1f} min, count error {rec['count_error_rel']:+.3f}, "
               f"PQ {rec['pq']:.3f}", file=sys.stderr)
@@ -133,6 +146,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--quick", action="store_true", help=f"the 4-row smoke run {list(QUICK)} with tiny settings")
     p.add_argument("--holdout", action="store_true",
                    help=f"the held-out rows {[r.name for r in HOLDOUT]} (in no family row's seed or knobs)")
+    p.add_argument("--fit-seed", type=int, default=0,
+                   help="nerf_fit.seed of every window (>= 1; own tables rows_seed<N>.*): the fit-to-fit spread")
     p.add_argument("--force", action="store_true", help="rerun rows (and their stages) that are done")
     p.add_argument("--data-root", type=Path, default=Path("data"))
     p.add_argument("--out", type=Path, default=Path("data/bench"))
@@ -147,8 +162,11 @@ def main(argv: list[str] | None = None) -> int:
     if not a.quick and set(names) - allowed:
         p.error(f"{sorted(set(names) - allowed)} are {'family' if a.holdout else 'held-out'} rows: "
                 f"{'drop' if a.holdout else 'add'} --holdout (the two tables are kept apart)")
-    tag = "rows_holdout" if a.holdout else "rows_quick" if a.quick else "rows"
-    df = run(names, a.quick, a.force, a.data_root, a.out, tag)
+    if a.fit_seed < 0:
+        p.error(f"--fit-seed must be >= 1 (0 = the seed of the plain run), got {a.fit_seed}")
+    tag = ("rows_holdout" if a.holdout else "rows_quick" if a.quick else "rows") + (
+        f"_seed{a.fit_seed}" if a.fit_seed else "")
+    df = run(names, a.quick, a.force, a.data_root, a.out, tag, a.fit_seed)
     cols = ["row", "count_error_rel", "recall", "precision", "row_id_consistency", "pq", "pq_detector", "psnr_db",
             "minutes"]
     print(df[cols].to_string(index=False, float_format=lambda v: f"{v:.3f}"))

@@ -31,9 +31,17 @@ def test_holdout_rows_share_no_seed_or_knob_set_with_the_family():
     for r in HOLDOUT:
         assert {k: v for k, v in r.knobs().items() if k != "seed"} not in knobs
         assert 8 <= r.fruits_per_m <= 40 and r.n_frames % 40 == 0 and family_row(r.name) is r
-    for argv in (["--quick", "--holdout"], ["--rows", HOLDOUT[0].name], ["--holdout", "--rows", FAMILY[0].name]):
+    for argv in (["--quick", "--holdout"], ["--rows", HOLDOUT[0].name], ["--holdout", "--rows", FAMILY[0].name],
+                 ["--fit-seed", "-1"]):
         with pytest.raises(SystemExit):  # before anything runs
             rows.main(argv)
+
+
+def test_a_fit_seed_row_is_its_own_sequence_with_the_seed_set():
+    assert rows.row_seq("dense") == "synth_rows_dense" and rows.row_seq("dense", fit_seed=2) == "synth_rows_dense_seed2"
+    assert rows.row_seq("dense", quick=True) == "synth_rowsq_dense"
+    assert "nerf_fit.seed=2" in rows.row_settings("dense", False, 2)
+    assert not any(s.startswith("nerf_fit.seed") for s in rows.row_settings("dense", False))
 
 
 def test_growth_exponent():

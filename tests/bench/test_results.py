@@ -68,6 +68,21 @@ def test_a_partly_run_family_says_which_rows_its_mean_covers(tmp_path):
     assert f"1 of the held-out {len(HOLDOUT)} rows finished" in text and HOLDOUT[1].name in text
 
 
+def test_fit_seed_tables_are_shown_beside_the_seed_0_rows(tmp_path):
+    write_parquet(pd.DataFrame({"row": ["dense", "densest", "mean"], "row_id_consistency": [0.87, 0.72, 0.8],
+                                "pq": [0.9, 0.88, 0.89]}), tmp_path / "rows.parquet")
+    write_parquet(pd.DataFrame({"row": ["densest", "mean"], "fit_seed": [1, None],
+                                "row_id_consistency": [0.79, 0.79], "pq": [0.885, 0.885]}),
+                  tmp_path / "rows_seed1.parquet")
+    text = results.seeds_section(tmp_path)
+    assert text.startswith("Row family on other fit seeds") and "seed 1:" in text
+    assert "| densest | 0 | 0.72 | 0.88 |" in text and "| densest | 1 | 0.79 | 0.885 |" in text
+    assert "| dense |" not in text and "| mean |" not in text  # only rows fitted on both seeds
+    block = results.build(tmp_path, tmp_path, "synth_none")
+    assert "Row family on other fit seeds" in block
+    assert "Row family on other fit seeds" not in results.build(tmp_path / "x", tmp_path / "x", "synth_none")
+
+
 def test_count_rules_section_lists_each_row_and_each_verdict(tmp_path):
     runs = pd.DataFrame({"seq": ["synth_a", "synth_a", ""], "variant": ["all rules", "far_row off", "far_row off"],
                          "rule": ["all rules", "far_row", "far_row"], "count_pred": [10.0, 12.0, None],
