@@ -75,7 +75,7 @@ class Config:
     max_fruit_radius_m: float = 0.06
     """metres, > 0: a sphere fit with a larger radius is not a fruit (a flat patch, or pieces of several fruits
     one slot painted) and the median is used; such a fruit gets no sphere for track_margin_m either, so it
-    takes no pixel from its neighbours. Set it somewhat above the largest fruit radius of the crop (sweet
+    takes no pixel from its neighbours and gives them those of its pixels that lie on their spheres. Set it somewhat above the largest fruit radius of the crop (sweet
     pepper about 0.03-0.045 m; the same bound as nerf_fit.panoptic.complete_max_radius_m)."""
     align_windows: bool = True
     """bring every window into one row frame before fusing: each window refines its poses on its own, so two
@@ -92,8 +92,9 @@ class Config:
     (rendered depth) lies outside the sphere of the fruit it was given, by more than this margin, but inside
     another fruit's sphere (radius + margin) goes to that fruit: a slot that painted a piece of a neighbour
     (a fruit entering or leaving the image, or one behind it) gives that piece back to the fruit whose
-    surface it is. Pixels on no sphere, and fruits without a plausible sphere, keep their id. About the
-    rendered depth error; 0 = off."""
+    surface it is. A fruit without a plausible sphere (too few points, or pieces of several fruits) gives
+    every pixel that lies on another fruit's sphere to that fruit. Pixels on no sphere keep their id. About
+    the rendered depth error; 0 = off."""
     compose_shared_frames: bool = True
     """in a frame several overlapping windows rendered, take each fruit's pixels from the window that saw the
     fruit in the most rendered frames (then pixels), not every pixel from the window whose centre is nearest.
@@ -345,9 +346,10 @@ def relabel_by_surface(inst: np.ndarray, depth: np.ndarray, k: np.ndarray, c2w: 
     """Give each fruit pixel of a fused frame (`inst` [H, W] fruit ids, changed in place; rendered z-depth in m,
     intrinsics k = (fx, fy, cx, cy), pose c2w) whose 3D point lies more than margin_m outside its own fruit's
     sphere but within another's (radius + margin_m) to that fruit (the one it lies deepest in: smallest
-    distance / radius). Pixels of fruits without a sphere, and pixels on no sphere, keep their id. Returns the
-    pixels moved."""
-    if margin_m <= 0 or len(spheres) < 2:
+    distance / radius). A fruit without a sphere (too few points, or no plausible fit: most often a sliver a
+    window gave a slot of its own) counts as outside its own sphere everywhere, so its pixels that lie on
+    another fruit's sphere join that fruit. Pixels on no sphere keep their id. Returns the pixels moved."""
+    if margin_m <= 0 or not spheres:
         return 0
     ids = np.array(sorted(spheres))
     centres = np.stack([spheres[int(i)][0] for i in ids])
@@ -355,13 +357,13 @@ def relabel_by_surface(inst: np.ndarray, depth: np.ndarray, k: np.ndarray, c2w: 
     # only the spheres whose image box is in the frame can hold a pixel's point (sphere_boxes)
     boxes = sphere_boxes(inst.shape, k, c2w, centres, radii + margin_m)
     seen = np.array([b is None or (b[0] < b[1] and b[2] < b[3]) for b in boxes])
-    if seen.sum() < 2:
+    if not seen.any():
         return 0
     column = np.full(max(int(inst.max()), int(ids.max())) + 1, -2)  # fruit id -> its sphere among those in view
     column[ids] = -1                                                  # (-1: out of view, -2: no sphere)
     column[ids[seen]] = np.arange(int(seen.sum()))
     ids, centres, radii = ids[seen], centres[seen], radii[seen]
-    v, u = np.nonzero((column[inst] >= -1) & (depth > 0))  # a fruit without a sphere keeps its pixels
+    v, u = np.nonzero((inst > 0) & (depth > 0))  # a fruit without a sphere has no own sphere to lie outside
     if not len(v):
         return 0
     own = column[inst[v, u]]
@@ -369,7 +371,8 @@ def relabel_by_surface(inst: np.ndarray, depth: np.ndarray, k: np.ndarray, c2w: 
     rel = np.linalg.norm(p[:, None] - centres[None], axis=2) / radii           # [P, S] distance / radius
     reach = 1.0 + margin_m / radii
     rows = np.arange(len(v))
-    off_own = (own < 0) | (rel[rows, own] > reach[own])    # a sphere out of view holds none of the points
+    col = np.maximum(own, 0)
+    off_own = (own < 0) | (rel[rows, col] > reach[col])    # a sphere out of view (or none) holds none of them
     score = np.where(rel <= reach[None], rel, np.inf)
     best = score.argmin(1)
     move = off_own & np.isfinite(score[rows, best]) & (best != own)

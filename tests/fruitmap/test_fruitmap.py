@@ -265,9 +265,15 @@ def test_fruit_pixels_on_another_fruits_surface_go_to_that_fruit():
     moved = panoptic_fusion.relabel_by_surface(inst, depth, k, np.eye(4), spheres, margin_m=0.01)
     assert moved == stolen.sum()
     assert (inst[who >= 0] == truth[who >= 0]).all() and (inst[halo] == 1).all()
-    # a fruit without a sphere keeps its pixels, and margin 0 switches the rule off
+    # a fruit without a sphere gives the pixels on another's sphere to it and keeps those on no sphere
     inst[stolen] = 1
-    assert panoptic_fusion.relabel_by_surface(inst, depth, k, np.eye(4), {2: b, 3: (np.ones(3), 0.03)}, 0.01) == 0
+    own = inst == 1
+    assert panoptic_fusion.relabel_by_surface(inst, depth, k, np.eye(4), {2: b, 3: (np.ones(3), 0.03)}, 0.01) \
+        == stolen.sum()
+    assert (inst[stolen] == 2).all() and (inst[own & ~stolen] == 1).all()
+    # with no sphere in view nothing moves
+    inst[stolen] = 1
+    assert panoptic_fusion.relabel_by_surface(inst, depth, k, np.eye(4), {3: (np.ones(3), 0.03)}, 0.01) == 0
     # pixels of an out-of-view fruit's id lie on no sphere of theirs: they go to the sphere they lie on
     inst[stolen] = 3
     assert panoptic_fusion.relabel_by_surface(inst, depth, k, np.eye(4), spheres, 0.01) == stolen.sum()
