@@ -75,8 +75,9 @@ class Config:
     max_fruit_radius_m: float = 0.06
     """metres, > 0: a sphere fit with a larger radius is not a fruit (a flat patch, or pieces of several fruits
     one slot painted) and the median is used; such a fruit gets no sphere for track_margin_m either, so it
-    takes no pixel from its neighbours and gives them those of its pixels that lie on their spheres. Set it somewhat above the largest fruit radius of the crop (sweet
-    pepper about 0.03-0.045 m; the same bound as nerf_fit.panoptic.complete_max_radius_m)."""
+    takes no pixel from its neighbours and gives them those of its pixels that lie on their spheres. Set it
+    somewhat above the largest fruit radius of the crop (sweet pepper about 0.03-0.045 m; the same bound as
+    nerf_fit.panoptic.complete_max_radius_m)."""
     align_windows: bool = True
     """bring every window into one row frame before fusing: each window refines its poses on its own, so two
     windows place one fruit where their own stretch of odometry put it, centimetres apart over a row with
