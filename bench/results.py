@@ -125,10 +125,9 @@ SEED_COLUMNS = ["count_error_rel", "recall", "precision", "row_id_consistency", 
 """Columns of the fit-seed comparison."""
 
 
-def seeds_section(bench_dir: Path) -> str:
-    """`pag bench rows --fit-seed N`: each row fitted on another seed beside the same row of rows.parquet
-    (seed 0), so the spread between fits of one recording shows."""
-    tables = sorted(bench_dir.glob("rows_seed*.parquet"))
+def seeds_section(bench_dir: Path, tables: list[Path]) -> str:
+    """`pag bench rows --fit-seed N` (the family's `tables`, rows_seed<N>.parquet): each row fitted on another
+    seed beside the same row of rows.parquet (seed 0), so the spread between fits of one recording shows."""
     parts, commits = [], []
     base_path = bench_dir / "rows.parquet"
     base = pd.read_parquet(base_path) if base_path.is_file() else pd.DataFrame(columns=["row"])
@@ -137,7 +136,7 @@ def seeds_section(bench_dir: Path) -> str:
     for path in tables:
         df = pd.read_parquet(path)
         df = df[~df.row.isin(["mean", "worst"])]
-        seed = int(df.fit_seed.iloc[0]) if "fit_seed" in df and len(df) else path.stem.removeprefix("rows_seed")
+        seed = int(df.fit_seed.iloc[0]) if "fit_seed" in df and len(df) else int(path.stem.removeprefix("rows_seed"))
         commits.append(f"seed {seed}: `{table_commit(path)}`")
         parts.append(df.assign(seed=seed))
         parts.append(base[base.row.isin(set(df.row))].assign(seed=0))
@@ -270,9 +269,10 @@ def build(data_root: Path, bench_dir: Path, seq: str, extra: list[str] = (), pre
 
     add("rows", bench_dir / "rows.parquet", family_section)
     add("rows_holdout", bench_dir / "rows_holdout.parquet", lambda p: family_section(p, "rows_holdout"))
-    if any(bench_dir.glob("rows_seed*.parquet")) or "rows_seeds" in kept:
-        add("rows_seeds", next(iter(sorted(bench_dir.glob("rows_seed*.parquet"))), bench_dir / "rows_seed1.parquet"),
-            lambda _: seeds_section(bench_dir))
+    seed_tables = sorted(bench_dir.glob("rows_seed*.parquet"))
+    if seed_tables or "rows_seeds" in kept:  # optional: never listed as not measured
+        add("rows_seeds", seed_tables[0] if seed_tables else bench_dir / "rows_seed1.parquet",
+            lambda _: seeds_section(bench_dir, seed_tables))
     add("count_rules", bench_dir / "count_rules.parquet", count_rules_section)
     add("scale", bench_dir / "scale.parquet", scale_section)
     add("real_row", bench_dir / "real_row.parquet", real_row_section)

@@ -154,11 +154,11 @@ def main(argv: list[str] | None = None) -> int:
     a = p.parse_args(argv)
     if a.quick and a.holdout:
         p.error("--quick and --holdout exclude each other")
-    default = list(QUICK) if a.quick else [r.name for r in (HOLDOUT if a.holdout else FAMILY)]
-    names = [n.strip() for n in a.rows.split(",") if n.strip()] or default
+    members = [r.name for r in (HOLDOUT if a.holdout else FAMILY)]
+    names = [n.strip() for n in a.rows.split(",") if n.strip()] or (list(QUICK) if a.quick else members)
     for n in names:
         family_row(n)  # unknown names fail before anything runs
-    allowed = {r.name for r in (HOLDOUT if a.holdout else FAMILY)}
+    allowed = set(members)
     if not a.quick and set(names) - allowed:
         p.error(f"{sorted(set(names) - allowed)} are {'family' if a.holdout else 'held-out'} rows: "
                 f"{'drop' if a.holdout else 'add'} --holdout (the two tables are kept apart)")

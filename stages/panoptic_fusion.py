@@ -360,9 +360,8 @@ def relabel_by_surface(inst: np.ndarray, depth: np.ndarray, k: np.ndarray, c2w: 
     seen = np.array([b is None or (b[0] < b[1] and b[2] < b[3]) for b in boxes])
     if not seen.any():
         return 0
-    column = np.full(max(int(inst.max()), int(ids.max())) + 1, -2)  # fruit id -> its sphere among those in view
-    column[ids] = -1                                                  # (-1: out of view, -2: no sphere)
-    column[ids[seen]] = np.arange(int(seen.sum()))
+    column = np.full(max(int(inst.max()), int(ids.max())) + 1, -1)  # fruit id -> its sphere among those in view
+    column[ids[seen]] = np.arange(int(seen.sum()))                    # (-1: none, or out of view)
     ids, centres, radii = ids[seen], centres[seen], radii[seen]
     v, u = np.nonzero((inst > 0) & (depth > 0))  # a fruit without a sphere has no own sphere to lie outside
     if not len(v):
@@ -373,7 +372,7 @@ def relabel_by_surface(inst: np.ndarray, depth: np.ndarray, k: np.ndarray, c2w: 
     reach = 1.0 + margin_m / radii
     rows = np.arange(len(v))
     col = np.maximum(own, 0)
-    off_own = (own < 0) | (rel[rows, col] > reach[col])    # a sphere out of view (or none) holds none of them
+    off_own = (own < 0) | (rel[rows, col] > reach[col])    # no own sphere in view holds none of them
     score = np.where(rel <= reach[None], rel, np.inf)
     best = score.argmin(1)
     move = off_own & np.isfinite(score[rows, best]) & (best != own)

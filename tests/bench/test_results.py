@@ -74,7 +74,7 @@ def test_fit_seed_tables_are_shown_beside_the_seed_0_rows(tmp_path):
     write_parquet(pd.DataFrame({"row": ["densest", "mean"], "fit_seed": [1, None],
                                 "row_id_consistency": [0.79, 0.79], "pq": [0.885, 0.885]}),
                   tmp_path / "rows_seed1.parquet")
-    text = results.seeds_section(tmp_path)
+    text = results.seeds_section(tmp_path, [tmp_path / "rows_seed1.parquet"])
     assert text.startswith("Row family on other fit seeds") and "seed 1:" in text
     assert "| densest | 0 | 0.72 | 0.88 |" in text and "| densest | 1 | 0.79 | 0.885 |" in text
     assert "| dense |" not in text and "| mean |" not in text  # only rows fitted on both seeds
