@@ -14,12 +14,12 @@ from nerf.geometry import pose_matrix, pose_txyzq
 from nerf.panoptic.complete import sphere_boxes
 from nerf.surfaces import fruit_sphere, robust_centre, unproject
 from pipeline.classes import THING_IDS, VOID
-from pipeline.images import ImageError, write_png
+from pipeline.images import ImageError, read_depth_m, write_png
 from pipeline.stage import StageContext
 from rowmap.geometry import POSE_COLS, pixel_groups, subsample, surface_centre, window_alignments
 from rowmap.renders import PANOPTIC_KINDS, Renders, encode
 
-INPUTS = ("frames", "windows", "window_poses", "window_metrics", "nerf", "renders")
+INPUTS = ("frames", "windows", "window_poses", "window_metrics", "nerf", "renders", "images")
 MAX_GROUPS = 256
 """groups a slot's pixels can split into in one frame (further groups stay with the largest)."""
 OUTPUTS = ("panoptic_frames", "panoptic", "fruit_slots")
@@ -90,12 +90,19 @@ class Config:
     track_margin_m: float = 0.01
     """metres, >= 0. Each fused fruit gets a sphere fitted to its seen surface over all its windows and frames
     (where the fit is plausible: max_fruit_radius_m). In every fused frame a fruit pixel whose 3D point
-    (rendered depth) lies outside the sphere of the fruit it was given, by more than this margin, but inside
-    another fruit's sphere (radius + margin) goes to that fruit: a slot that painted a piece of a neighbour
-    (a fruit entering or leaving the image, or one behind it) gives that piece back to the fruit whose
-    surface it is. A fruit without a plausible sphere (too few points, or pieces of several fruits) gives
-    every pixel that lies on another fruit's sphere to that fruit. Pixels on no sphere keep their id. About
-    the rendered depth error; 0 = off."""
+    (placed with surface_depth) lies outside the sphere of the fruit it was given, by more than this
+    margin, but inside another fruit's sphere (radius + margin) goes to that fruit: a slot that painted a
+    piece of a neighbour (a fruit entering or leaving the image, or one behind it) gives that piece back to
+    the fruit whose surface it is. A fruit without a plausible sphere (too few points, or pieces of several
+    fruits) gives every pixel that lies on another fruit's sphere to that fruit. Pixels on no sphere keep
+    their id. About the depth error of the spheres and the placed points; 0 = off."""
+    surface_depth: Literal["sensor", "rendered"] = "sensor"
+    """the depth that places a fused frame's fruit pixels for track_margin_m: 'sensor' = the recorded depth
+    image where it has a valid pixel (the rendered depth elsewhere), 'rendered' = the NeRF's depth everywhere.
+    The render is weakest where its window saw little: at the image border, where a fruit enters or leaves
+    the view, and in the frames at a window's ends. There the rendered depth can put a fruit's pixels onto a
+    neighbour's sphere, while the sensor measures the fruit's own surface. Use 'rendered' for a depth sensor
+    whose error on fruits is larger than track_margin_m. The spheres are fitted to rendered points either way."""
     compose_shared_frames: bool = True
     """in a frame several overlapping windows rendered, take each fruit's pixels from the window that saw the
     fruit in the most rendered frames (then pixels), not every pixel from the window whose centre is nearest.
@@ -583,7 +590,11 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
             write_png(out_dir / "depth" / f"{fid:06d}.png", encode("depth", depth))
         if spheres:
             before = out_inst.copy()
-            moved = relabel_by_surface(out_inst, depth, np.array([fr.fx, fr.fy, fr.cx, fr.cy], np.float64), r.c2w,
+            placed = depth
+            if cfg.surface_depth == "sensor":
+                sensor = read_depth_m(ctx.abspath(fr.depth_path), fr.depth_scale_m)  # aligned to colour (ingest)
+                placed = np.where(sensor > 0, sensor, depth)
+            moved = relabel_by_surface(out_inst, placed, np.array([fr.fx, fr.fy, fr.cx, fr.cy], np.float64), r.c2w,
                                        spheres, cfg.track_margin_m)
             if moved:
                 ctx.count("pixels_moved_to_their_surface", moved)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pandas as pd
 import pyarrow.parquet as pq
@@ -15,6 +16,7 @@ from pipeline.classes import THING_IDS
 from pipeline.images import ImageError, read_label
 from pipeline.stage import StageContext
 from rowmap.geometry import pixel_groups, surface_centre, window_alignments
+from rowmap.renders import file_name
 from rowmap.scoring import reference_pixels
 from stages import evaluate, fruit_count, panoptic_fusion, report
 
@@ -282,6 +284,46 @@ def test_fruit_pixels_on_another_fruits_surface_go_to_that_fruit():
     assert panoptic_fusion.relabel_by_surface(inst, depth, k, np.eye(4), spheres, 0.0) == 0
     with pytest.raises(ValueError, match="track_margin_m"):
         panoptic_fusion.Config(track_margin_m=-0.01)
+
+
+def test_a_piece_the_render_misplaces_is_given_back_by_the_sensor_depth(make_row, tiny_row_upstream):
+    # in one frame a single window rendered, a third of the largest fruit is painted with another fruit's
+    # slot and rendered at the far background (as a render can be at the image border); the recorded depth
+    # still lies on the fruit's own surface
+    frames = pd.read_parquet(tiny_row_upstream / "interim" / SEQ / "frames.parquet").set_index("frame_id")
+    windows = pd.read_parquet(tiny_row_upstream / "interim" / SEQ / "windows.parquet")
+    val = windows[windows.split == "val"]
+    alone = val.groupby("frame_id").window_id.nunique().loc[lambda n: n == 1].index
+    gt = {int(f): read_label(tiny_row_upstream / frames.loc[f, "gt_instance_path"], "gt") for f in alone}
+    fid = max(gt, key=lambda f: np.bincount(gt[f].ravel())[1:].max(initial=0))
+    wid = int(val[val.frame_id == fid].window_id.iloc[0])
+    g_inst = gt[fid]
+    ids, n = np.unique(g_inst[g_inst > 0], return_counts=True)
+    assert len(ids) >= 2, "the chosen frame shows fewer than two fruits"
+    a, b = int(ids[np.argmax(n)]), int(ids[np.argsort(n)[-2]])
+    cols = np.nonzero((g_inst == a).any(0))[0]
+    stolen = (g_inst == a) & (np.arange(g_inst.shape[1])[None] > cols.min() + 2 * (cols.max() - cols.min()) / 3)
+    assert stolen.sum() >= 10
+
+    def steal(w: int, f: int, sem: np.ndarray, slots: np.ndarray):
+        if (w, f) == (wid, fid):
+            slots = slots.copy()
+            slots[stolen] = slots[g_inst == b][0]
+        return sem, slots
+
+    row = make_row(hook=steal)
+    depth_png = row.processed / "nerf" / file_name(wid, "depth", fid)
+    rendered = cv2.imread(str(depth_png), cv2.IMREAD_UNCHANGED)
+    rendered[stolen] = 3000                                  # mm: on no fruit's sphere
+    cv2.imwrite(str(depth_png), rendered)
+    pieces = {}
+    for which in ("sensor", "rendered"):
+        row.runner(f"panoptic_fusion.surface_depth={which}").run(["panoptic_fusion"], force=True)
+        pf = pd.read_parquet(row.processed / "panoptic_frames.parquet").set_index("frame_id")
+        fused = read_label(row.root / pf.loc[fid, "instance_path"], "fused")
+        own = np.bincount(fused[(g_inst == a) & ~stolen]).argmax()
+        pieces[which] = (fused[stolen] == own).mean()
+    assert pieces["sensor"] >= 0.9 and pieces["rendered"] <= 0.1, pieces
 
 
 def test_each_fruit_of_a_frame_several_windows_rendered_comes_from_the_window_that_saw_it_best():
