@@ -14,7 +14,7 @@ from scipy.stats import binom
 import schemas
 from nerf.geometry import pose_matrix
 from pipeline.classes import DEFAULT_CLASSES, THING_IDS, class_name
-from pipeline.images import ImageError, read_label
+from pipeline.images import ImageError, read_depth_m, read_label
 from pipeline.stage import StageContext
 from nerf.surfaces import fit_sphere, plausible_fit, principal_extents, robust_centre, unproject
 from rowmap.colours import id_colours
@@ -22,7 +22,7 @@ from rowmap.geometry import subsample
 from rowmap.renders import read_depth
 from rowmap.scoring import reference_pixels
 
-INPUTS = ("frames", "nerf", "panoptic_frames", "panoptic", "fruit_slots")
+INPUTS = ("frames", "nerf", "panoptic_frames", "panoptic", "fruit_slots", "images")
 OUTPUTS = ("fruits", "counts", "fruit_map")
 
 
@@ -42,6 +42,13 @@ class Config:
     sphere ('sphere': its radius mixes width and length, so it reads high on elongated fruits), or the
     principal extents of the points ('pca': a half-seen surface is smaller than the fruit, so it reads low).
     All three are written to fruits.parquet; 'sphere' suits round fruits (tomatoes, apples)."""
+    surface_depth: Literal["sensor", "rendered"] = "sensor"
+    """the depth each fused fruit pixel is un-projected with for the fruit's centre, size and median depth:
+    'sensor' = the recorded depth image where it has a valid pixel (the rendered depth elsewhere),
+    'rendered' = the NeRF's depth everywhere. The render is weakest at the image border and in the frames
+    at a window's ends, where it can place a fruit entering or leaving the view centimetres from its
+    surface; the sensor measures that surface. Use 'rendered' for a depth sensor that is noisier on fruits
+    than the render (the render averages the depth of many frames) or with holes over most fruits."""
     min_points: int = 20
     """points, >= 4: fruits with fewer 3D points get no size (diameter null) and the median as centre."""
     max_points_per_view: int = 600
@@ -56,8 +63,8 @@ class Config:
     duplicate): listed in fruits.parquet with counted = false, not counted. 1 = count every fruit seen."""
     min_count_points: int = 100
     """points, >= 0: a fruit with fewer 3D points over the row is a fragment too (counted = false); so is one
-    with fewer pixels of rendered depth over its fused frames, each frame's pixels counted as in a 320x180
-    image (nerf.config.BASE_PIXELS; x 1/16 at 1280x720). The second part keeps the rule's meaning at every
+    with fewer pixels with depth (surface_depth) over its fused frames, each frame's pixels counted as in a
+    320x180 image (nerf.config.BASE_PIXELS; x 1/16 at 1280x720). The second part keeps the rule's meaning at every
     image size: a fruit covers 16 times the pixels at 1280x720, and its points are capped per frame
     (max_points_per_view). Up to 320x180 it is implied by the first."""
     max_count_diameter_m: float = 0.15
@@ -209,7 +216,7 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
     votes: dict[int, list[int]] = defaultdict(list)
     depths: dict[int, list[np.ndarray]] = defaultdict(list)
     seen: dict[int, list[int]] = defaultdict(list)
-    ref_px: dict[int, float] = defaultdict(float)  # pixels with rendered depth, scaled to a BASE_PIXELS image
+    ref_px: dict[int, float] = defaultdict(float)  # pixels with depth, scaled to a BASE_PIXELS image
     checked: dict[int, int] = defaultdict(int)      # fused frames with a detector image, per fruit
     confirmed: dict[int, int] = defaultdict(int)    # ... of them where the detector's segments cover the fruit
     for r in ctx.progress(pf.itertuples(index=False), "unproject fruits", total=len(pf)):
@@ -223,6 +230,9 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
         if not inst.shape == sem.shape == depth.shape:
             raise ImageError(f"frame {fid}: fused PNGs {r.instance_path} {inst.shape}, {r.semantic_path} {sem.shape} "
                              f"and depth render {r.depth_path} {depth.shape} differ in size")
+        if cfg.surface_depth == "sensor":
+            sensor = read_depth_m(ctx.abspath(fr.depth_path), fr.depth_scale_m)   # aligned to colour (ingest)
+            depth = np.where(sensor > 0, sensor, depth)
         det = None
         if "det_instance_path" in fr.index and isinstance(fr.det_instance_path, str) and fr.det_instance_path:
             det = read_label(ctx.abspath(fr.det_instance_path), "detector instance")
@@ -258,7 +268,7 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
     for fruit in ctx.progress(sorted(seen), "measure fruits", total=len(seen)):
         if fruit not in points:
             ctx.count("fruits_without_depth")
-            ctx.note(f"fruit {fruit}: no pixel with valid rendered depth in frames {seen[fruit]}; not in fruits")
+            ctx.note(f"fruit {fruit}: no pixel with valid depth in frames {seen[fruit]}; not in fruits")
             continue
         pts = np.concatenate(points[fruit])
         m = measure(pts, cfg)
