@@ -14,12 +14,12 @@ from scipy.stats import binom
 import schemas
 from nerf.geometry import pose_matrix
 from pipeline.classes import DEFAULT_CLASSES, THING_IDS, class_name
-from pipeline.images import ImageError, read_depth_m, read_label
+from pipeline.images import ImageError, read_label
 from pipeline.stage import StageContext
 from nerf.surfaces import fit_sphere, plausible_fit, principal_extents, robust_centre, unproject
 from rowmap.colours import id_colours
 from rowmap.geometry import subsample
-from rowmap.renders import read_depth
+from rowmap.renders import read_depth, with_sensor_depth
 from rowmap.scoring import reference_pixels
 
 INPUTS = ("frames", "nerf", "panoptic_frames", "panoptic", "fruit_slots", "images")
@@ -231,8 +231,7 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
             raise ImageError(f"frame {fid}: fused PNGs {r.instance_path} {inst.shape}, {r.semantic_path} {sem.shape} "
                              f"and depth render {r.depth_path} {depth.shape} differ in size")
         if cfg.surface_depth == "sensor":
-            sensor = read_depth_m(ctx.abspath(fr.depth_path), fr.depth_scale_m)   # aligned to colour (ingest)
-            depth = np.where(sensor > 0, sensor, depth)
+            depth = with_sensor_depth(depth, ctx.abspath(fr.depth_path), fr.depth_scale_m)
         det = None
         if "det_instance_path" in fr.index and isinstance(fr.det_instance_path, str) and fr.det_instance_path:
             det = read_label(ctx.abspath(fr.det_instance_path), "detector instance")

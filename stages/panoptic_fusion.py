@@ -14,10 +14,10 @@ from nerf.geometry import pose_matrix, pose_txyzq
 from nerf.panoptic.complete import sphere_boxes
 from nerf.surfaces import fruit_sphere, robust_centre, unproject
 from pipeline.classes import THING_IDS, VOID
-from pipeline.images import ImageError, read_depth_m, write_png
+from pipeline.images import ImageError, write_png
 from pipeline.stage import StageContext
 from rowmap.geometry import POSE_COLS, pixel_groups, subsample, surface_centre, window_alignments
-from rowmap.renders import PANOPTIC_KINDS, Renders, encode
+from rowmap.renders import PANOPTIC_KINDS, Renders, encode, with_sensor_depth
 
 INPUTS = ("frames", "windows", "window_poses", "window_metrics", "nerf", "renders", "images")
 MAX_GROUPS = 256
@@ -592,8 +592,7 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
             before = out_inst.copy()
             placed = depth
             if cfg.surface_depth == "sensor":
-                sensor = read_depth_m(ctx.abspath(fr.depth_path), fr.depth_scale_m)  # aligned to colour (ingest)
-                placed = np.where(sensor > 0, sensor, depth)
+                placed = with_sensor_depth(depth, ctx.abspath(fr.depth_path), fr.depth_scale_m)
             moved = relabel_by_surface(out_inst, placed, np.array([fr.fx, fr.fy, fr.cx, fr.cy], np.float64), r.c2w,
                                        spheres, cfg.track_margin_m)
             if moved:

@@ -16,7 +16,7 @@ from pipeline.classes import THING_IDS
 from pipeline.images import ImageError, read_label
 from pipeline.stage import StageContext
 from rowmap.geometry import pixel_groups, surface_centre, window_alignments
-from rowmap.renders import file_name
+from rowmap.renders import file_name, with_sensor_depth
 from rowmap.scoring import reference_pixels
 from stages import evaluate, fruit_count, panoptic_fusion, report
 
@@ -475,6 +475,15 @@ def test_fruit_centres_and_sizes_come_from_the_sensor_depth_where_the_render_is_
                          np.median(np.abs(fruits.diameter_m.to_numpy() - gt.diameter_m.to_numpy()[near])))
     assert errors["sensor"][0] < 0.015 and errors["rendered"][0] > 0.025, errors
     assert errors["sensor"][1] < errors["rendered"][1], errors
+
+
+def test_the_sensor_depth_fills_in_where_it_is_valid_and_must_match_the_render(tmp_path):
+    sensor = np.array([[0, 500], [1200, 0]], np.uint16)                     # mm; 0 = no depth
+    cv2.imwrite(str(tmp_path / "d.png"), sensor)
+    rendered = np.full((2, 2), 0.7, np.float32)
+    assert np.allclose(with_sensor_depth(rendered, tmp_path / "d.png", 0.001), [[0.7, 0.5], [1.2, 0.7]])
+    with pytest.raises(ImageError, match="d.png is 2x2 but the render is 3x2"):
+        with_sensor_depth(np.zeros((2, 3), np.float32), tmp_path / "d.png", 0.001)
 
 
 def test_counts_equal_the_ground_truth_near_row_fruits_seen(perfect_row):
