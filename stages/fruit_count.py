@@ -67,6 +67,13 @@ class Config:
     320x180 image (nerf.config.BASE_PIXELS; x 1/16 at 1280x720). The second part keeps the rule's meaning at every
     image size: a fruit covers 16 times the pixels at 1280x720, and its points are capped per frame
     (max_points_per_view). Up to 320x180 it is implied by the first."""
+    lone_fragment_m: float = 0.06
+    """metres, >= 0 (0 = off). A fragment (min_count_frames, min_count_points) is counted after all when the
+    detector confirms it in every fused frame it is seen in, it has at least min_points points, and no counted
+    fruit lies within this distance of its centre: a fruit seen only in the first or last frames of the
+    recording is a fragment by size, and so is a stray piece of a fruit already counted, but the piece lies
+    next to that fruit. Fragments closer than this to each other count once (the one with most points). About
+    the smallest distance between two fruits' centres (a fruit diameter)."""
     max_count_diameter_m: float = 0.15
     """metres, > 0. A fruit whose measured diameter (diameter_m) exceeds this is not one fruit but pieces of
     several, or of a fruit and what lies behind it, under one id (most often a slot a window paints while
@@ -97,6 +104,8 @@ class Config:
             raise ValueError(f"fruit_count.max_depth_m must be > 0, got {self.max_depth_m}")
         if not self.mad_k > 0:
             raise ValueError(f"fruit_count.mad_k must be > 0, got {self.mad_k}")
+        if not self.lone_fragment_m >= 0:
+            raise ValueError(f"fruit_count.lone_fragment_m must be >= 0, got {self.lone_fragment_m}")
         if self.min_count_frames < 1 or self.min_count_points < 0:
             raise ValueError("fruit_count.min_count_frames must be >= 1 and min_count_points >= 0")
         if self.min_points < 4 or self.max_points_per_view < 1:
@@ -144,6 +153,24 @@ def is_fragment(n_frames: int, n_points: int, ref_pixels: float, cfg: Config) ->
     """A fruit seen in under cfg.min_count_frames fused frames, or with under cfg.min_count_points inlier points
     or reference pixels (reference_pixels summed over its fused frames): not counted."""
     return n_frames < cfg.min_count_frames or min(n_points, ref_pixels) < cfg.min_count_points
+
+
+def lone_fragments(fruits: pd.DataFrame, candidates: list[int], min_distance_m: float) -> list[int]:
+    """The candidate fruit ids (fragments the detector confirms in every frame) to count after all: taken by
+    points, most first, each only if no counted fruit of `fruits` (fruit_id, x_m, y_m, z_m, counted, n_points)
+    and no candidate taken before lies within min_distance_m of its centre (0 = none)."""
+    if min_distance_m <= 0 or not candidates:
+        return []
+    xyz = fruits.set_index("fruit_id")[["x_m", "y_m", "z_m"]]
+    taken_xyz = [p for p in fruits.loc[fruits.counted.astype(bool), ["x_m", "y_m", "z_m"]].to_numpy(np.float64)]
+    points = fruits.set_index("fruit_id").n_points
+    out = []
+    for f in sorted(candidates, key=lambda f: (-int(points[f]), f)):
+        p = xyz.loc[f].to_numpy(np.float64)
+        if all(np.linalg.norm(p - q) > min_distance_m for q in taken_xyz):
+            out.append(f)
+            taken_xyz.append(p)
+    return out
 
 
 def oversize(diameter_m: float | None, cfg: Config) -> bool:
@@ -264,6 +291,7 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
     support = detector_support(checked, confirmed, cfg.detector_alpha)
     rows, cloud_pts, cloud_ids = [], [], []
     too_wide: list[int] = []  # near-row fruits not counted by the oversize rule
+    lone_candidates: list[int] = []  # fragments the detector confirms in every frame (lone_fragment_m)
     for fruit in ctx.progress(sorted(seen), "measure fruits", total=len(seen)):
         if fruit not in points:
             ctx.count("fruits_without_depth")
@@ -280,11 +308,14 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
         if near_row and wide:
             too_wide.append(fruit)
         p_real, unconfirmed = support.get(fruit, (None, False))
+        fragment = is_fragment(n_frames, m["n_points"], ref_px[fruit], cfg)
+        if (near_row and fragment and not unconfirmed and not wide and m["n_points"] >= cfg.min_points
+                and checked.get(fruit, 0) > 0 and confirmed.get(fruit, 0) == checked[fruit]):
+            lone_candidates.append(fruit)
         rows.append({"fruit_id": fruit, "class_id": cls, "class_name": class_name(cls),
                      "class_confidence": float(np.mean(v == cls)), **m, "median_depth_m": med_depth,
                      "near_row": near_row, "n_frames": n_frames,
-                     "counted": bool(near_row and not unconfirmed and not wide
-                                     and not is_fragment(n_frames, m["n_points"], ref_px[fruit], cfg)),
+                     "counted": bool(near_row and not unconfirmed and not wide and not fragment),
                      "n_confirmed_frames": confirmed.get(fruit, 0) if fruit in checked else None,
                      "detector_p": p_real,
                      "n_windows": int(n_windows.get(fruit, 1)), "first_frame_id": min(seen[fruit]),
@@ -292,6 +323,8 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
         cloud_pts.append(pts)
         cloud_ids.append(np.full(len(pts), fruit))
     fruits = pd.DataFrame(rows, columns=schemas.get("fruits").names) if rows else schemas.empty("fruits")
+    lone = lone_fragments(fruits, lone_candidates, cfg.lone_fragment_m)
+    fruits.loc[fruits.fruit_id.isin(lone), "counted"] = True
     near = fruits[fruits.counted.astype(bool)]
     counts = pd.DataFrame([{"class_id": c.id, "class_name": c.name, "count": int((near.class_id == c.id).sum()),
                             "mean_diameter_m": (float(near.loc[near.class_id == c.id, "diameter_m"].dropna().mean())
@@ -321,11 +354,14 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
     if unconf:
         ctx.note(f"fruits {unconf}: the detector confirms them in too few of their frames (detector_p < "
                  f"{cfg.detector_alpha:g}): in fruits.parquet with counted = false")
+    if lone:
+        ctx.note(f"fruits {lone}: fragments by size, confirmed by the detector in every frame and farther than "
+                 f"{cfg.lone_fragment_m:g} m from any counted fruit (lone_fragment_m): counted")
     if n_frag:
         ctx.note(f"{n_frag} near-row fruits not counted: fragments (under {cfg.min_count_frames} fused frames or "
                  f"under {cfg.min_count_points} points or pixels at 320x180), unconfirmed by the detector or wider than "
                  f"max_count_diameter_m; counted = false")
     ctx.summary.update(fruits=len(fruits), counted=len(near), far_row=n_far, fragments=n_frag, unconfirmed=len(unconf),
-                       oversize=len(too_wide),
+                       oversize=len(too_wide), lone_fragments=len(lone),
                        **{f"count_{c}": int(n) for c, n in zip(counts.class_name, counts["count"])})
     return {"fruits": fruits, "counts": counts}

@@ -710,6 +710,19 @@ def test_the_fragment_rule_means_the_same_at_every_image_size():
     assert fruit_count.is_fragment(1, 5000, 5000.0, cfg) and fruit_count.is_fragment(5, 60, 5000.0, cfg)
 
 
+def test_a_lone_confirmed_fragment_is_counted_and_a_piece_next_to_a_counted_fruit_is_not():
+    # fruit 1 counted at the origin; fragments the detector confirms in every frame: 2 and 5 stand alone, 3 lies
+    # next to fruit 1 (a stray piece of it), 4 next to fragment 2 (two pieces of one fruit: counted once)
+    fruits = pd.DataFrame({"fruit_id": [1, 2, 3, 4, 5], "counted": [True, False, False, False, False],
+                           "n_points": [900, 150, 200, 60, 30],
+                           "x_m": [0.0, 0.10, 0.03, 0.12, 0.30], "y_m": 0.0, "z_m": 0.5})
+    assert fruit_count.lone_fragments(fruits, [2, 3, 4, 5], 0.06) == [2, 5]
+    assert fruit_count.lone_fragments(fruits, [4, 2], 0.06) == [2]           # the one with more points wins
+    assert fruit_count.lone_fragments(fruits, [2, 3, 4, 5], 0.0) == []       # 0 = off
+    with pytest.raises(ValueError, match="lone_fragment_m"):
+        fruit_count.Config(lone_fragment_m=-0.01)
+
+
 def test_associate_compares_only_windows_whose_fruits_lie_within_the_gate(monkeypatch):
     cfg = panoptic_fusion.Config(max_match_distance_m=0.04, strong_match_distance_m=0.08)
     fruits = []
