@@ -1,6 +1,9 @@
 """Fruit geometry across windows: the row frame the windows are brought into, the centre of a fruit from
-its seen surface, groups of pixels whose 3D points lie apart, and an even subsample of points."""
+its seen surface, groups of pixels whose 3D points lie apart, an even subsample of points, and the depth that
+places fused pixels in 3D."""
 from __future__ import annotations
+
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -9,6 +12,7 @@ from scipy.sparse.csgraph import connected_components
 
 from nerf.geometry import align_similarity, pose_matrix, similarity_matrix
 from nerf.surfaces import fruit_sphere, robust_centre
+from pipeline.images import ImageError, read_depth_m
 
 POSE_COLS = ("tx", "ty", "tz", "qx", "qy", "qz", "qw")
 """camera-to-world pose columns of the pose tables (position in m, rotation quaternion)."""
@@ -84,3 +88,13 @@ def pixel_groups(v: np.ndarray, u: np.ndarray, points: np.ndarray, gap_m: float,
     keep = (np.bincount(lab, minlength=k) >= min_size) & (np.arange(k) < max_groups)
     keep[0] = True
     return np.where(keep[lab], np.cumsum(keep)[lab] - 1, 0)
+
+
+def with_sensor_depth(rendered: np.ndarray, sensor_path: Path, scale_m: float) -> np.ndarray:
+    """[H, W] metres: the recorded depth image at `sensor_path` (units of `scale_m` metres; ingest aligns it
+    to colour, so it matches the render's size) where it has a valid pixel, the `rendered` depth elsewhere."""
+    sensor = read_depth_m(sensor_path, scale_m)
+    if sensor.shape != rendered.shape:
+        raise ImageError(f"depth image {sensor_path} is {sensor.shape[1]}x{sensor.shape[0]} but the render is "
+                         f"{rendered.shape[1]}x{rendered.shape[0]}; rerun the pipeline from ingest")
+    return np.where(sensor > 0, sensor, rendered)

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from pipeline.images import ImageError, read_depth_m, read_label, read_rgb, write_png
+from pipeline.images import ImageError, read_label, read_rgb, write_png
 
 KINDS = ("rgb", "depth", "semantic", "instance")
 PANOPTIC_KINDS = ("semantic", "instance", "depth")
@@ -102,13 +102,3 @@ class Renders:
 def read_depth(path: Path, what: str = "depth render") -> np.ndarray:
     """A depth render file as float32 metres [H, W] (0 = no depth)."""
     return read_label(path, what).astype(np.float32) * np.float32(DEPTH_SCALE_M)
-
-
-def with_sensor_depth(rendered: np.ndarray, sensor_path: Path, scale_m: float) -> np.ndarray:
-    """[H, W] metres: the recorded depth image at `sensor_path` (units of `scale_m` metres; ingest aligns it
-    to colour, so it matches the render's size) where it has a valid pixel, the `rendered` depth elsewhere."""
-    sensor = read_depth_m(sensor_path, scale_m)
-    if sensor.shape != rendered.shape:
-        raise ImageError(f"depth image {sensor_path} is {sensor.shape[1]}x{sensor.shape[0]} but the render is "
-                         f"{rendered.shape[1]}x{rendered.shape[0]}; rerun the pipeline from ingest")
-    return np.where(sensor > 0, sensor, rendered)

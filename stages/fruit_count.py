@@ -18,8 +18,8 @@ from pipeline.images import ImageError, read_label
 from pipeline.stage import StageContext
 from nerf.surfaces import fit_sphere, plausible_fit, principal_extents, robust_centre, unproject
 from rowmap.colours import id_colours
-from rowmap.geometry import subsample
-from rowmap.renders import read_depth, with_sensor_depth
+from rowmap.geometry import subsample, with_sensor_depth
+from rowmap.renders import read_depth
 from rowmap.scoring import reference_pixels
 
 INPUTS = ("frames", "nerf", "panoptic_frames", "panoptic", "fruit_slots", "images")

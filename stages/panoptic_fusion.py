@@ -16,8 +16,8 @@ from nerf.surfaces import fruit_sphere, robust_centre, unproject
 from pipeline.classes import THING_IDS, VOID
 from pipeline.images import ImageError, write_png
 from pipeline.stage import StageContext
-from rowmap.geometry import POSE_COLS, pixel_groups, subsample, surface_centre, window_alignments
-from rowmap.renders import PANOPTIC_KINDS, Renders, encode, with_sensor_depth
+from rowmap.geometry import POSE_COLS, pixel_groups, subsample, surface_centre, window_alignments, with_sensor_depth
+from rowmap.renders import PANOPTIC_KINDS, Renders, encode
 
 INPUTS = ("frames", "windows", "window_poses", "window_metrics", "nerf", "renders", "images")
 MAX_GROUPS = 256

@@ -15,8 +15,8 @@ from pipeline import cli
 from pipeline.classes import THING_IDS
 from pipeline.images import ImageError, read_label
 from pipeline.stage import StageContext
-from rowmap.geometry import pixel_groups, surface_centre, window_alignments
-from rowmap.renders import file_name, with_sensor_depth
+from rowmap.geometry import pixel_groups, surface_centre, window_alignments, with_sensor_depth
+from rowmap.renders import file_name
 from rowmap.scoring import reference_pixels
 from stages import evaluate, fruit_count, panoptic_fusion, report
 
