@@ -4,8 +4,8 @@ row counted with every rule on, scored by the evaluate stage.
     pag bench count_rules [--seqs synth_rows_dense,...] [--quick] [--data-root data] [--out data/bench]
 
 The rules (fruit_count settings) are those that decide `counted`: fragments (min_count_frames,
-min_count_points, with the lone_fragment_m exemption), unconfirmed fruits (detector_alpha), the far row (max_depth_m) and fruits wider than any
-fruit of the crop (max_count_diameter_m). Only fruit_count and
+min_count_points, with the lone_fragment_m exemption), unconfirmed fruits (detector_alpha), the far row
+(max_depth_m) and fruits wider than any fruit of the crop (max_count_diameter_m). Only fruit_count and
 evaluate run again, in memory, on the row's fused panoptic frames as they are on disk (the NeRF is not
 refitted, and the row's own tables are not touched), each with the row's resolved configuration and one
 rule switched off. By default the rows are the finished rows of `pag bench rows` (data/bench/rows/*.json;

@@ -64,8 +64,8 @@ class Config:
     min_count_points: int = 100
     """points, >= 0: a fruit with fewer 3D points over the row is a fragment too (counted = false); so is one
     with fewer pixels with depth (surface_depth) over its fused frames, each frame's pixels counted as in a
-    320x180 image (nerf.config.BASE_PIXELS; x 1/16 at 1280x720). The second part keeps the rule's meaning at every
-    image size: a fruit covers 16 times the pixels at 1280x720, and its points are capped per frame
+    320x180 image (nerf.config.BASE_PIXELS; x 1/16 at 1280x720). The second part keeps the rule's meaning at
+    every image size: a fruit covers 16 times the pixels at 1280x720, and its points are capped per frame
     (max_points_per_view). Up to 320x180 it is implied by the first."""
     lone_fragment_m: float = 0.06
     """metres, >= 0 (0 = off). A fragment (min_count_frames, min_count_points) is counted after all when the
@@ -161,12 +161,11 @@ def lone_fragments(fruits: pd.DataFrame, candidates: list[int], min_distance_m: 
     and no candidate taken before lies within min_distance_m of its centre (0 = none)."""
     if min_distance_m <= 0 or not candidates:
         return []
-    xyz = fruits.set_index("fruit_id")[["x_m", "y_m", "z_m"]]
-    taken_xyz = [p for p in fruits.loc[fruits.counted.astype(bool), ["x_m", "y_m", "z_m"]].to_numpy(np.float64)]
-    points = fruits.set_index("fruit_id").n_points
+    by_id = fruits.set_index("fruit_id")
+    taken_xyz = list(fruits.loc[fruits.counted.astype(bool), ["x_m", "y_m", "z_m"]].to_numpy(np.float64))
     out = []
-    for f in sorted(candidates, key=lambda f: (-int(points[f]), f)):
-        p = xyz.loc[f].to_numpy(np.float64)
+    for f in sorted(candidates, key=lambda f: (-int(by_id.n_points[f]), f)):
+        p = by_id.loc[f, ["x_m", "y_m", "z_m"]].to_numpy(np.float64)
         if all(np.linalg.norm(p - q) > min_distance_m for q in taken_xyz):
             out.append(f)
             taken_xyz.append(p)
@@ -308,14 +307,15 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
         if near_row and wide:
             too_wide.append(fruit)
         p_real, unconfirmed = support.get(fruit, (None, False))
+        eligible = near_row and not unconfirmed and not wide   # counted unless a fragment
         fragment = is_fragment(n_frames, m["n_points"], ref_px[fruit], cfg)
-        if (near_row and fragment and not unconfirmed and not wide and m["n_points"] >= cfg.min_points
+        if (eligible and fragment and m["n_points"] >= cfg.min_points
                 and checked.get(fruit, 0) > 0 and confirmed.get(fruit, 0) == checked[fruit]):
             lone_candidates.append(fruit)
         rows.append({"fruit_id": fruit, "class_id": cls, "class_name": class_name(cls),
                      "class_confidence": float(np.mean(v == cls)), **m, "median_depth_m": med_depth,
                      "near_row": near_row, "n_frames": n_frames,
-                     "counted": bool(near_row and not unconfirmed and not wide and not fragment),
+                     "counted": bool(eligible and not fragment),
                      "n_confirmed_frames": confirmed.get(fruit, 0) if fruit in checked else None,
                      "detector_p": p_real,
                      "n_windows": int(n_windows.get(fruit, 1)), "first_frame_id": min(seen[fruit]),

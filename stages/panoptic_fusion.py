@@ -351,12 +351,13 @@ def fruit_spheres(groups: list[list[int]], local: list[LocalFruit], slot_views: 
 
 def relabel_by_surface(inst: np.ndarray, depth: np.ndarray, k: np.ndarray, c2w: np.ndarray,
                        spheres: dict[int, tuple[np.ndarray, float]], margin_m: float) -> int:
-    """Give each fruit pixel of a fused frame (`inst` [H, W] fruit ids, changed in place; rendered z-depth in m,
-    intrinsics k = (fx, fy, cx, cy), pose c2w) whose 3D point lies more than margin_m outside its own fruit's
-    sphere but within another's (radius + margin_m) to that fruit (the one it lies deepest in: smallest
-    distance / radius). A fruit without a sphere (too few points, or no plausible fit: most often a sliver a
-    window gave a slot of its own) counts as outside its own sphere everywhere, so its pixels that lie on
-    another fruit's sphere join that fruit. Pixels on no sphere keep their id. Returns the pixels moved."""
+    """Give each fruit pixel of a fused frame (`inst` [H, W] fruit ids, changed in place; z-depth in m that
+    places the pixels (surface_depth), intrinsics k = (fx, fy, cx, cy), pose c2w) whose 3D point lies more than
+    margin_m outside its own fruit's sphere but within another's (radius + margin_m) to that fruit (the one it
+    lies deepest in: smallest distance / radius). A fruit without a sphere (too few points, or no plausible fit:
+    most often a sliver a window gave a slot of its own) counts as outside its own sphere everywhere, so its
+    pixels that lie on another fruit's sphere join that fruit. Pixels on no sphere keep their id. Returns the
+    pixels moved."""
     if margin_m <= 0 or not spheres:
         return 0
     ids = np.array(sorted(spheres))
