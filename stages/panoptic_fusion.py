@@ -16,10 +16,11 @@ from nerf.surfaces import fruit_sphere, robust_centre, unproject
 from pipeline.classes import THING_IDS, VOID
 from pipeline.images import ImageError, write_png
 from pipeline.stage import StageContext
+from rowmap.detections import dropped_segments, fruit_segments
 from rowmap.geometry import POSE_COLS, pixel_groups, subsample, surface_centre, window_alignments, with_sensor_depth
 from rowmap.renders import PANOPTIC_KINDS, Renders, encode
 
-INPUTS = ("frames", "windows", "window_poses", "window_metrics", "nerf", "renders", "images")
+INPUTS = ("frames", "windows", "window_poses", "window_metrics", "nerf", "renders", "images", "detections_filtered")
 MAX_GROUPS = 256
 """groups a slot's pixels can split into in one frame (further groups stay with the largest)."""
 OUTPUTS = ("panoptic_frames", "panoptic", "fruit_slots")
@@ -103,6 +104,15 @@ class Config:
     the view, and in the frames at a window's ends. There the rendered depth can put a fruit's pixels onto a
     neighbour's sphere, while the sensor measures the fruit's own surface. Use 'rendered' for a depth sensor
     whose error on fruits is larger than track_margin_m. The spheres are fitted to rendered points either way."""
+    detector_fill: bool = True
+    """in every fused frame, give a fruit the pixels of its detector segment that the render left as stuff or
+    void and whose 3D point (placed with surface_depth) lies within track_margin_m of where the pixel's ray
+    meets the fruit's sphere (enters it, or passes closest to it), and deeper in it than in any other fruit's
+    sphere. A fruit's segment is the detector segment holding most of the fruit's pixels in that frame, and
+    more of them than of any other fruit's. The NeRF often paints a fruit's silhouette, or the sliver of a
+    fruit entering or leaving the image, as leaf; the detector and the depth sensor still see the fruit there.
+    Needs spheres (track_margin_m > 0) and detector output; segments the depth filter dropped are not used.
+    Off = the fused fruits have the render's pixels only."""
     compose_shared_frames: bool = True
     """in a frame several overlapping windows rendered, take each fruit's pixels from the window that saw the
     fruit in the most rendered frames (then pixels), not every pixel from the window whose centre is nearest.
@@ -388,6 +398,53 @@ def relabel_by_surface(inst: np.ndarray, depth: np.ndarray, k: np.ndarray, c2w: 
     return int(move.sum())
 
 
+def fill_from_detector(inst: np.ndarray, segments: np.ndarray, depth: np.ndarray, k: np.ndarray, c2w: np.ndarray,
+                       spheres: dict[int, tuple[np.ndarray, float]], margin_m: float) -> int:
+    """Give each fruit of a fused frame (`inst` [H, W] fruit ids, changed in place) the pixels of its detector
+    segment (`segments` [H, W] ids, 0 = none) that carry no fruit and whose point (z-depth `depth` in m,
+    intrinsics k = (fx, fy, cx, cy), pose c2w) lies within margin_m of where the pixel's ray meets the
+    fruit's sphere (enters it, or passes closest to it) and deeper in it (distance / radius) than in any other
+    of `spheres`. A leaf a little behind the fruit's outline lies near the sphere but behind where its ray
+    passes it, so it is not taken. A fruit's segment: the one holding most of its pixels, provided that
+    segment holds more of this fruit's pixels than of any other fruit's (a segment the detector spread over
+    two fruits feeds only the fruit it covers most). Returns the pixels filled."""
+    both = (inst > 0) & (segments > 0)
+    if margin_m <= 0 or not spheres or not both.any():
+        return 0
+    pairs, n = np.unique(np.c_[inst[both].astype(np.int64), segments[both]], axis=0, return_counts=True)
+    order = np.argsort(-n, kind="stable")
+    seg_of: dict[int, int] = {}
+    fruit_of: dict[int, int] = {}
+    for f, s in pairs[order].tolist():
+        seg_of.setdefault(f, s)
+        fruit_of.setdefault(s, f)
+    ids = np.array(sorted(spheres))
+    centres = np.stack([spheres[int(i)][0] for i in ids])
+    radii = np.array([spheres[int(i)][1] for i in ids])
+    filled = 0
+    for f, s in seg_of.items():
+        if fruit_of[s] != f or f not in spheres:
+            continue
+        v, u = np.nonzero((segments == s) & (inst == 0) & (depth > 0))
+        if not len(v):
+            continue
+        p = unproject(depth, k, c2w, v, u)
+        rel = np.linalg.norm(p[:, None] - centres[None], axis=2) / radii
+        own = int(np.searchsorted(ids, f))
+        ray = p - c2w[:3, 3]
+        dist = np.linalg.norm(ray, axis=1)              # from the camera to the point
+        ray = ray / dist[:, None]
+        oc = centres[own] - c2w[:3, 3]
+        b = ray @ oc                                    # along the ray to where it passes the centre closest
+        disc = b * b - (oc @ oc - radii[own] ** 2)
+        enter = b - np.sqrt(np.maximum(disc, 0.0))     # where the ray enters the sphere, or passes closest
+        beside = np.maximum(np.sqrt(np.maximum(oc @ oc - b * b, 0.0)) - radii[own], 0.0)  # outside it by
+        ok = (np.hypot(dist - enter, beside) <= margin_m) & (rel.argmin(1) == own)
+        inst[v[ok], u[ok]] = f
+        filled += int(ok.sum())
+    return filled
+
+
 def fused_labels(renders: Renders, wid: int, fid: int, shape: tuple[int, int], groups_px: dict,
                  lut: dict[tuple[int, int, int], int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(semantic uint8, instance uint16 row-level fruit ids, depth m) of one window's render of a frame, its
@@ -570,6 +627,7 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
         if lf.fruit_id:
             n_f, n_px = support.get((lf.window_id, lf.fruit_id), (0, 0))
             support[(lf.window_id, lf.fruit_id)] = (n_f + len({f for f, _ in lf.frames}), n_px + lf.n_px)
+    dropped = dropped_segments(inputs.get("detections_filtered"))
     pick = views.assign(abs_off=views.offset.abs()).sort_values(["frame_id", "abs_off", "window_id"])
     n_win = views.groupby("frame_id").window_id.nunique()
     rows = []
@@ -594,12 +652,17 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
             placed = depth
             if cfg.surface_depth == "sensor":
                 placed = with_sensor_depth(depth, ctx.abspath(fr.depth_path), fr.depth_scale_m)
-            moved = relabel_by_surface(out_inst, placed, np.array([fr.fx, fr.fy, fr.cx, fr.cy], np.float64), r.c2w,
-                                       spheres, cfg.track_margin_m)
+            k = np.array([fr.fx, fr.fy, fr.cx, fr.cy], np.float64)
+            moved = relabel_by_surface(out_inst, placed, k, r.c2w, spheres, cfg.track_margin_m)
             if moved:
                 ctx.count("pixels_moved_to_their_surface", moved)
-                m = out_inst != before
-                out_sem[m] = fruit_class[out_inst[m]]
+            segments = fruit_segments(fr, ctx.data_root, dropped.get(fid)) if cfg.detector_fill else None
+            if segments is not None:
+                filled = fill_from_detector(out_inst, segments, placed, k, r.c2w, spheres, cfg.track_margin_m)
+                if filled:
+                    ctx.count("pixels_filled_from_detector", filled)
+            m = out_inst != before
+            out_sem[m] = fruit_class[out_inst[m]]
         name = f"{fid:06d}.png"
         write_png(out_dir / "semantic" / name, out_sem)
         write_png(out_dir / "instance" / name, out_inst)

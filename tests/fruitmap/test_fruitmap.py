@@ -15,6 +15,7 @@ from pipeline import cli
 from pipeline.classes import THING_IDS
 from pipeline.images import ImageError, read_label
 from pipeline.stage import StageContext
+from rowmap.detections import dropped_segments, fruit_segments
 from rowmap.geometry import pixel_groups, surface_centre, window_alignments, with_sensor_depth
 from rowmap.renders import file_name
 from rowmap.scoring import reference_pixels
@@ -286,6 +287,73 @@ def test_fruit_pixels_on_another_fruits_surface_go_to_that_fruit():
         panoptic_fusion.Config(track_margin_m=-0.01)
 
 
+def test_a_fruit_takes_the_pixels_of_its_detector_segment_that_lie_on_its_sphere():
+    k = np.array([100.0, 100.0, 40.0, 30.0])
+    a, b = (np.array([-0.05, 0.0, 0.5]), 0.03), (np.array([0.05, 0.0, 0.55]), 0.035)
+    depth, who = sphere_depth(k, (60, 80), [a, b], background_m=2.0)   # fruit 1: columns 24-35, fruit 2: 43-55
+    truth = np.where(who == 0, 1, np.where(who == 1, 2, 0)).astype(np.uint16)
+    spheres = {1: a, 2: b}
+    cols = np.arange(80)[None]
+    left = (who == 0) & (cols < 28)                  # the render painted these pixels of fruit 1 as leaf
+    right = (who == 1) & (cols > 52)                 # and these of fruit 2
+    spill = (who == -1) & (cols < 24) & (cols > 18) & (np.abs(np.arange(60)[:, None] - 30) < 3)
+    assert left.sum() > 10 and right.sum() > 10 and spill.sum() > 0
+    segments = np.where(who == 0, 5, np.where(who == 1, 6, 0))
+    segments[spill] = 5                              # the detector's boundary spills onto the background
+    inst = truth.copy()
+    inst[left | right] = 0
+    before = inst.copy()
+    assert panoptic_fusion.fill_from_detector(inst, segments, depth, k, np.eye(4), spheres, 0.01) \
+        == left.sum() + right.sum()
+    assert (inst == truth).all()                     # the spilled background pixels lie on no sphere
+    # a leaf 1.5 cm behind fruit 1's outline: its points lie within the margin of the sphere, but its rays
+    # pass beside the fruit, and the leaf lies well behind where they pass it
+    v, u = np.mgrid[0:60, 0:80]
+    ray = np.stack([(u + 0.5 - k[2]) / k[0], (v + 0.5 - k[3]) / k[1], np.ones((60, 80))], -1)
+    ray /= np.linalg.norm(ray, axis=-1, keepdims=True)
+    along = ray @ a[0]
+    beside = np.linalg.norm(along[..., None] * ray - a[0], axis=-1)        # the ray's closest approach
+    leaf = (who == -1) & (beside < a[1] + 0.003)
+    assert leaf.sum() > 5
+    leaf_depth = np.where(leaf, (along + 0.015) * ray[..., 2], depth)       # z-depth 1.5 cm past that point
+    assert (np.hypot(beside[leaf], 0.015) < a[1] + 0.01).all()             # within the margin of the sphere
+    segments[leaf] = 5
+    assert panoptic_fusion.fill_from_detector(inst, segments, leaf_depth, k, np.eye(4), spheres, 0.01) == 0
+    segments[leaf] = 0
+    # one segment over both fruits belongs to the fruit it covers most (fruit 2): it takes its own pixels
+    # back but none of fruit 1's, which lie on fruit 1's sphere; fruit 1 takes nothing from it
+    inst = before.copy()
+    one = np.where(who >= 0, 7, 0)
+    assert (inst[who == 1] == 2).sum() > (inst[who == 0] == 1).sum()
+    assert panoptic_fusion.fill_from_detector(inst, one, depth, k, np.eye(4), spheres, 0.01) == right.sum()
+    assert (inst[right] == 2).all() and (inst[left] == 0).all()
+    # no fill without a margin, and none for a fruit without a sphere
+    inst = before.copy()
+    assert panoptic_fusion.fill_from_detector(inst, segments, depth, k, np.eye(4), spheres, 0.0) == 0
+    assert panoptic_fusion.fill_from_detector(inst, segments, depth, k, np.eye(4), {2: b}, 0.01) == right.sum()
+    assert (inst[left] == 0).all()
+
+
+def test_the_detector_fruit_segments_leave_out_stuff_and_the_segments_the_depth_filter_dropped(tmp_path):
+    sem = np.full((4, 6), 1, np.uint8)
+    inst = np.zeros((4, 6), np.uint16)
+    sem[:, :2], inst[:, :2] = THING_IDS[0], 3              # a kept fruit segment
+    sem[:, 2:4], inst[:, 2:4] = THING_IDS[0], 4            # one the depth filter dropped (the far row)
+    inst[:, 4:] = 5                                        # an id on stuff pixels
+    cv2.imwrite(str(tmp_path / "s.png"), sem)
+    cv2.imwrite(str(tmp_path / "i.png"), inst)
+    frame = pd.Series({"frame_id": 7, "width": 6, "height": 4, "det_semantic_path": "s.png",
+                       "det_instance_path": "i.png"})
+    dets = pd.DataFrame({"frame_id": [7, 7, 8], "segment_id": [3, 4, 3], "kept": [True, False, False]})
+    dropped = dropped_segments(dets)
+    assert sorted(dropped) == [7, 8] and list(dropped[7]) == [4]
+    seg = fruit_segments(frame, tmp_path, dropped.get(7))
+    assert (seg[:, :2] == 3).all() and (seg[:, 2:] == 0).all()
+    assert fruit_segments(frame.copy().replace({"s.png": None}), tmp_path) is None   # no detector output
+    with pytest.raises(ImageError, match="detector PNGs"):
+        fruit_segments(frame.copy().replace({6: 5}), tmp_path)
+
+
 def test_a_piece_the_render_misplaces_is_given_back_by_the_sensor_depth(make_row, tiny_row_upstream):
     # in one frame a single window rendered, a third of the largest fruit is painted with another fruit's
     # slot and rendered at the far background (as a render can be at the image border); the recorded depth
@@ -366,10 +434,11 @@ def test_a_frame_the_nearest_window_rendered_without_its_fruits_takes_them_from_
             sem, slots = np.where(slots > 0, 1, sem), np.zeros_like(slots)
         return sem, slots
 
+    render_only = "panoptic_fusion.detector_fill=false"   # the fruit pixels the windows rendered, nothing added
     whole = make_row(name="whole")
-    whole.runner().run(["panoptic_fusion"], force=True)
+    whole.runner(render_only).run(["panoptic_fusion"], force=True)
     row = make_row(hook=lose_fruits)
-    row.runner().run(["panoptic_fusion"], force=True)
+    row.runner(render_only).run(["panoptic_fusion"], force=True)
     pf = pd.read_parquet(row.processed / "panoptic_frames.parquet").set_index("frame_id")
     pf_whole = pd.read_parquet(whole.processed / "panoptic_frames.parquet").set_index("frame_id")
     n_fruit_px = 0
@@ -383,7 +452,7 @@ def test_a_frame_the_nearest_window_rendered_without_its_fruits_takes_them_from_
             assert pf.loc[f, "window_id"] == nearest[f] and "panoptic/depth/" in pf.loc[f, "depth_path"]
             assert (row.root / pf.loc[f, "depth_path"]).exists()
     assert n_fruit_px > 0
-    row.runner("panoptic_fusion.compose_shared_frames=false").run(["panoptic_fusion"], force=True)
+    row.runner("panoptic_fusion.compose_shared_frames=false", render_only).run(["panoptic_fusion"], force=True)
     pf = pd.read_parquet(row.processed / "panoptic_frames.parquet").set_index("frame_id")
     assert all((read_label(row.root / pf.loc[f, "instance_path"], "fused") == 0).all() for f in nearest)
 
