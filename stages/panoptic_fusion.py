@@ -106,13 +106,14 @@ class Config:
     whose error on fruits is larger than track_margin_m. The spheres are fitted to rendered points either way."""
     detector_fill: bool = True
     """in every fused frame, give a fruit the pixels of its detector segment that the render left as stuff or
-    void and whose 3D point (placed with surface_depth) lies within track_margin_m of where the pixel's ray
-    meets the fruit's sphere (enters it, or passes closest to it), and deeper in it than in any other fruit's
-    sphere. A fruit's segment is the detector segment holding most of the fruit's pixels in that frame, and
-    more of them than of any other fruit's. The NeRF often paints a fruit's silhouette, or the sliver of a
-    fruit entering or leaving the image, as leaf; the detector and the depth sensor still see the fruit there.
-    Needs spheres (track_margin_m > 0) and detector output; segments the depth filter dropped are not used.
-    Off = the fused fruits have the render's pixels only."""
+    void and whose 3D point (placed with surface_depth) lies within the fruit's sphere (radius +
+    track_margin_m), not farther than track_margin_m beyond the sphere's centre along the pixel's ray (a leaf
+    a little behind the fruit's outline lies near the sphere but behind it), and deeper in it than in any other
+    fruit's sphere. A fruit's segment is the detector segment holding most of the fruit's pixels in that
+    frame, and more of them than of any other fruit's. The NeRF often paints a fruit's silhouette, or the
+    sliver of a fruit entering or leaving the image, as leaf; the detector and the depth sensor still see the
+    fruit there. Needs spheres (track_margin_m > 0) and detector output; segments the depth filter dropped are
+    not used. Off = the fused fruits have the render's pixels only."""
     compose_shared_frames: bool = True
     """in a frame several overlapping windows rendered, take each fruit's pixels from the window that saw the
     fruit in the most rendered frames (then pixels), not every pixel from the window whose centre is nearest.
@@ -402,12 +403,13 @@ def fill_from_detector(inst: np.ndarray, segments: np.ndarray, depth: np.ndarray
                        spheres: dict[int, tuple[np.ndarray, float]], margin_m: float) -> int:
     """Give each fruit of a fused frame (`inst` [H, W] fruit ids, changed in place) the pixels of its detector
     segment (`segments` [H, W] ids, 0 = none) that carry no fruit and whose point (z-depth `depth` in m,
-    intrinsics k = (fx, fy, cx, cy), pose c2w) lies within margin_m of where the pixel's ray meets the
-    fruit's sphere (enters it, or passes closest to it) and deeper in it (distance / radius) than in any other
-    of `spheres`. A leaf a little behind the fruit's outline lies near the sphere but behind where its ray
-    passes it, so it is not taken. A fruit's segment: the one holding most of its pixels, provided that
-    segment holds more of this fruit's pixels than of any other fruit's (a segment the detector spread over
-    two fruits feeds only the fruit it covers most). Returns the pixels filled."""
+    intrinsics k = (fx, fy, cx, cy), pose c2w) lies within its sphere (radius + margin_m), at most margin_m
+    beyond the sphere's centre along the pixel's ray, and deeper in it (distance / radius) than in any other
+    of `spheres`. The fruit's own surface faces the camera, in front of the centre; a leaf a little behind the
+    fruit's outline lies near the sphere but behind the centre, so it is not taken. A fruit's segment: the
+    one holding most of its pixels, provided that segment holds more of this fruit's pixels than of any other
+    fruit's (a segment the detector spread over two fruits feeds only the fruit it covers most). Returns the
+    pixels filled."""
     both = (inst > 0) & (segments > 0)
     if margin_m <= 0 or not spheres or not both.any():
         return 0
@@ -431,15 +433,11 @@ def fill_from_detector(inst: np.ndarray, segments: np.ndarray, depth: np.ndarray
         p = unproject(depth, k, c2w, v, u)
         rel = np.linalg.norm(p[:, None] - centres[None], axis=2) / radii
         own = int(np.searchsorted(ids, f))
+        # how far along its ray the point lies beyond the sphere's centre (the fruit's seen surface is in front)
         ray = p - c2w[:3, 3]
-        dist = np.linalg.norm(ray, axis=1)              # from the camera to the point
-        ray = ray / dist[:, None]
-        oc = centres[own] - c2w[:3, 3]
-        b = ray @ oc                                    # along the ray to where it passes the centre closest
-        disc = b * b - (oc @ oc - radii[own] ** 2)
-        enter = b - np.sqrt(np.maximum(disc, 0.0))     # where the ray enters the sphere, or passes closest
-        beside = np.maximum(np.sqrt(np.maximum(oc @ oc - b * b, 0.0)) - radii[own], 0.0)  # outside it by
-        ok = (np.hypot(dist - enter, beside) <= margin_m) & (rel.argmin(1) == own)
+        dist = np.linalg.norm(ray, axis=1)
+        past = dist - (ray / dist[:, None]) @ (centres[own] - c2w[:3, 3])
+        ok = (rel[:, own] <= 1.0 + margin_m / radii[own]) & (past <= margin_m) & (rel.argmin(1) == own)
         inst[v[ok], u[ok]] = f
         filled += int(ok.sum())
     return filled

@@ -306,8 +306,8 @@ def test_a_fruit_takes_the_pixels_of_its_detector_segment_that_lie_on_its_sphere
     assert panoptic_fusion.fill_from_detector(inst, segments, depth, k, np.eye(4), spheres, 0.01) \
         == left.sum() + right.sum()
     assert (inst == truth).all()                     # the spilled background pixels lie on no sphere
-    # a leaf 1.5 cm behind fruit 1's outline: its points lie within the margin of the sphere, but its rays
-    # pass beside the fruit, and the leaf lies well behind where they pass it
+    # a leaf 1.5 cm behind fruit 1's outline: its points lie within the margin of the sphere, but behind the
+    # sphere's centre along their rays (the fruit's seen surface faces the camera)
     v, u = np.mgrid[0:60, 0:80]
     ray = np.stack([(u + 0.5 - k[2]) / k[0], (v + 0.5 - k[3]) / k[1], np.ones((60, 80))], -1)
     ray /= np.linalg.norm(ray, axis=-1, keepdims=True)
