@@ -423,13 +423,17 @@ def fill_from_detector(inst: np.ndarray, segments: np.ndarray, depth: np.ndarray
     ids = np.array(sorted(spheres))
     centres = np.stack([spheres[int(i)][0] for i in ids])
     radii = np.array([spheres[int(i)][1] for i in ids])
+    # each segment feeds at most one fruit, so the free pixels (no fruit, a segment, a depth) are found once
+    free_v, free_u = np.nonzero((inst == 0) & (segments > 0) & (depth > 0))
+    free_seg = segments[free_v, free_u]
     filled = 0
     for f, s in seg_of.items():
         if fruit_of[s] != f or f not in spheres:
             continue
-        v, u = np.nonzero((segments == s) & (inst == 0) & (depth > 0))
-        if not len(v):
+        mine = free_seg == s
+        if not mine.any():
             continue
+        v, u = free_v[mine], free_u[mine]
         p = unproject(depth, k, c2w, v, u)
         rel = np.linalg.norm(p[:, None] - centres[None], axis=2) / radii
         own = int(np.searchsorted(ids, f))
