@@ -3,10 +3,12 @@ from __future__ import annotations
 
 from collections import defaultdict
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Literal
 
 import numpy as np
 import pandas as pd
+from scipy.cluster.hierarchy import fcluster, linkage
 from scipy.optimize import linear_sum_assignment
 
 import schemas
@@ -14,11 +16,11 @@ from nerf.geometry import pose_matrix, pose_txyzq
 from nerf.panoptic.complete import sphere_boxes
 from nerf.surfaces import fruit_sphere, robust_centre, unproject
 from pipeline.classes import THING_IDS, VOID
-from pipeline.images import ImageError, write_png
+from pipeline.images import ImageError, read_label, write_png
 from pipeline.stage import StageContext
 from rowmap.detections import dropped_segments, fruit_segments
 from rowmap.geometry import POSE_COLS, pixel_groups, subsample, surface_centre, window_alignments, with_sensor_depth
-from rowmap.renders import PANOPTIC_KINDS, Renders, encode
+from rowmap.renders import PANOPTIC_KINDS, Renders, encode, read_depth
 
 INPUTS = ("frames", "windows", "window_poses", "window_metrics", "nerf", "renders", "images", "detections_filtered")
 MAX_GROUPS = 256
@@ -114,6 +116,22 @@ class Config:
     sliver of a fruit entering or leaving the image, as leaf; the detector and the depth sensor still see the
     fruit there. Needs spheres (track_margin_m > 0) and detector output; segments the depth filter dropped are
     not used. Off = the fused fruits have the render's pixels only."""
+    detector_split_m: float = 0.03
+    """metres, >= 0; 0 = off. A fused fruit that the detector shows as several fruits is split. In every fused
+    frame each detector segment lying mostly on fused fruits is given to the fruit holding most of it (at least
+    min_group_px of its pixels) and yields a centre there: the median of those pixels' points, placed with
+    surface_depth. Over the row a fruit's segment centres are linked into clusters where closer than this
+    distance (single linkage). Where two clusters, each seen in at least min_split_frames frames, are seen
+    together (two segments in one frame) in at least min_split_frames frames, the fused fruit holds two
+    fruits: the NeRF painted two touching fruits with one slot for their whole visible stretch, most often at
+    the row's ends where one window alone sees them. The cluster with the most pixels keeps the fruit's id;
+    another joins an existing fruit at its place (centres within max_match_distance_m, or one inside the
+    other's sphere) or becomes a new fruit (ids after those of the row). In each frame a cluster's segments
+    go to it and the fruit's other pixels to the cluster whose sphere they lie deepest in (track_margin_m and
+    detector_fill then run again with those spheres). About the
+    largest shift of a fruit's seen-surface centre between two neighbouring frames (it moves as the fruit
+    enters the view or hides behind a leaf), well under the distance of two touching fruits' centres. Needs
+    detector output."""
     compose_shared_frames: bool = True
     """in a frame several overlapping windows rendered, take each fruit's pixels from the window that saw the
     fruit in the most rendered frames (then pixels), not every pixel from the window whose centre is nearest.
@@ -138,6 +156,8 @@ class Config:
                              "min_split_frames >= 1")
         if not self.track_margin_m >= 0:
             raise ValueError(f"panoptic_fusion.track_margin_m must be >= 0, got {self.track_margin_m}")
+        if not self.detector_split_m >= 0:
+            raise ValueError(f"panoptic_fusion.detector_split_m must be >= 0, got {self.detector_split_m}")
         if self.group_gap_m < 0 or self.min_group_px < 1:
             raise ValueError(f"panoptic_fusion: group_gap_m must be >= 0 and min_group_px >= 1, got "
                              f"{self.group_gap_m}, {self.min_group_px}")
@@ -447,6 +467,98 @@ def fill_from_detector(inst: np.ndarray, segments: np.ndarray, depth: np.ndarray
     return filled
 
 
+def segment_centres(inst: np.ndarray, segments: np.ndarray, depth: np.ndarray, k: np.ndarray, c2w: np.ndarray,
+                    min_px: int, max_points: int) -> list[tuple[int, int, int, np.ndarray, np.ndarray]]:
+    """(fruit id, segment id, pixels, centre [3], points [n, 3]) for each detector segment of a fused frame that
+    lies mostly (over half of its pixels) on fused fruits, given to the fruit of `inst` that holds most of it,
+    where that fruit holds at least min_px of its pixels with a depth: the centre is the robust median of
+    their points (z-depth `depth` in m, intrinsics k, pose c2w), `points` at most max_points of them (evenly
+    subsampled). A segment mostly on stuff is the detector's alone (a false detection, or a fruit the render
+    does not show)."""
+    on_fruit = (inst > 0) & (segments > 0)
+    if not on_fruit.any():
+        return []
+    size = np.bincount(segments.ravel())
+    covered = np.bincount(segments[on_fruit], minlength=len(size))
+    v, u = np.nonzero(on_fruit & (depth > 0))
+    if not len(v):
+        return []
+    key = inst[v, u].astype(np.int64) * len(size) + segments[v, u]      # one number per (fruit, segment)
+    order = np.argsort(key, kind="stable")
+    v, u, key = v[order], u[order], key[order]
+    starts = np.flatnonzero(np.r_[True, key[1:] != key[:-1]])
+    ends = np.r_[starts[1:], len(key)]
+    out, taken = [], set()
+    for j in np.argsort(-(ends - starts), kind="stable"):
+        f, sid = divmod(int(key[starts[j]]), len(size))
+        n = int(ends[j] - starts[j])
+        if n < min_px or sid in taken or 2 * covered[sid] <= size[sid]:
+            continue
+        taken.add(sid)
+        pts = unproject(depth, k, c2w, v[starts[j]:ends[j]], u[starts[j]:ends[j]])
+        out.append((f, sid, n, robust_centre(pts)[0], pts[subsample(n, max_points)]))
+    return out
+
+
+def detector_clusters(views: list[tuple], link_m: float, min_frames: int) -> tuple[np.ndarray, list[np.ndarray]]:
+    """The fruits one fused fruit holds by its detector segments. `views`: (frame, segment, pixels, centre, ...)
+    of the segments given to it (segment_centres). Centres closer than link_m are linked (single linkage); a
+    cluster counts when seen in at least min_frames frames, and is a fruit of its own when it and another
+    such cluster are seen together (in one frame) in at least min_frames frames. Returns (the cluster of each
+    view, -1 for none; the clusters' centres, the one with most pixels first), or (all -1, []) where the
+    segments show one fruit."""
+    labels = np.full(len(views), -1)
+    if link_m <= 0 or len(views) < 2:
+        return labels, []
+    pts = np.stack([v[3] for v in views])
+    raw = fcluster(linkage(pts, "single"), link_m, criterion="distance")
+    frames_of = defaultdict(set)
+    for (f, *_), c in zip(views, raw):
+        frames_of[c].add(f)
+    lasting = {c for c, fs in frames_of.items() if len(fs) >= min_frames}
+    together = set()
+    for a in lasting:
+        for b in lasting:
+            if a < b and len(frames_of[a] & frames_of[b]) >= min_frames:
+                together |= {a, b}
+    if not together:
+        return labels, []
+    px = {c: sum(v[2] for v, r in zip(views, raw) if r == c) for c in together}
+    order = sorted(together, key=lambda c: -px[c])
+    centres = [np.median(pts[raw == c], 0) for c in order]
+    rank = {c: i for i, c in enumerate(order)}
+    labels = np.array([rank.get(c, -1) for c in raw])
+    return labels, centres
+
+
+def split_by_detector(inst: np.ndarray, segments: np.ndarray, depth: np.ndarray, k: np.ndarray, c2w: np.ndarray,
+                      fruit: int, ids: list[int], spheres: list[tuple[np.ndarray, float]],
+                      seg_cluster: dict[int, int], min_px: int) -> int:
+    """Hand a fused fruit's pixels of one frame (`inst`, changed in place) to the fruits it holds: the pixels of
+    a detector segment of a cluster (`seg_cluster`: segment id -> index into `ids` and `spheres`) go to that
+    cluster's id, its other pixels with a depth to the id of the sphere (centre, radius) they lie deepest in
+    (distance / radius). A cluster without a segment in the frame that would get fewer than min_px pixels
+    leaves them to the first (stray pixels near a fruit that is not in view). Returns the pixels moved."""
+    mine = inst == fruit
+    target = np.full(inst.shape, -1)
+    for sid, j in seg_cluster.items():
+        target[mine & (segments == sid)] = j
+    v, u = np.nonzero(mine & (target < 0) & (depth > 0))
+    if len(v):
+        p = unproject(depth, k, c2w, v, u)
+        centres = np.stack([c for c, _ in spheres])
+        radii = np.array([r for _, r in spheres])
+        target[v, u] = (np.linalg.norm(p[:, None] - centres[None], axis=2) / radii).argmin(1)
+    shown = set(seg_cluster.values())
+    for j in range(1, len(ids)):
+        if j not in shown and np.count_nonzero(target == j) < min_px:
+            target[target == j] = 0
+    new = np.where(target >= 0, np.asarray(ids)[np.maximum(target, 0)], inst)
+    moved = int(np.count_nonzero(mine & (new != fruit)))
+    inst[mine] = new[mine]
+    return moved
+
+
 def fused_labels(renders: Renders, wid: int, fid: int, shape: tuple[int, int], groups_px: dict,
                  lut: dict[tuple[int, int, int], int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(semantic uint8, instance uint16 row-level fruit ids, depth m) of one window's render of a frame, its
@@ -507,6 +619,94 @@ def compose(labelled: list[tuple[np.ndarray, np.ndarray, np.ndarray]], wins: lis
         out_sem[m] = sem[m]
         depth[m] = d[m]
     return out_sem, out_inst, depth, bool((src > 0).any())
+
+
+def split_fruits(seg_views: dict, in_frame: dict[int, set[int]], depth_file: dict[int, Path],
+                 cams: dict[int, np.ndarray], rows: list[dict], spheres: dict, fruit_centres: dict[int, np.ndarray],
+                 fruit_class: np.ndarray, frames: pd.DataFrame, dropped: dict, out_dir: Path, cfg: Config,
+                 ctx: StageContext) -> int:
+    """detector_split_m: rewrite the fused frames (PNGs in `out_dir`; per frame its depth PNG `depth_file` and
+    pose `cams`) of the fruits the detector shows as several (detector_clusters on `seg_views`: per fruit its
+    (frame, segment, pixels, centre, points)); `rows` (panoptic_frames rows) get their fruit counts updated.
+    A split-off cluster joins the nearest fruit whose centre (`fruit_centres`: sphere centres, else the
+    association's) lies within max_match_distance_m of its own (its sphere's centre where the fit is
+    plausible) or inside its sphere (radius + track_margin_m), or whose sphere holds its centre; else it is a
+    new fruit. Where every cluster has a plausible sphere, the fruit, new fruits and joined fruits without a
+    sphere take their cluster's, and relabel_by_surface and detector_fill run again with them. `dropped`: the
+    segments the depth filter dropped, per frame. Returns the number of fruits of the row."""
+    plans = {}
+    classes = list(fruit_class)
+    n_fruits = len(fruit_class) - 1
+    sphere_of = dict(spheres)
+    known = sorted(fruit_centres)
+    known_xyz = np.stack([fruit_centres[g] for g in known]) if known else np.zeros((0, 3))
+    for f, views in sorted(seg_views.items()):
+        labels, centres = detector_clusters(views, cfg.detector_split_m, cfg.min_split_frames)
+        if not centres:
+            continue
+        fits = [fruit_sphere(np.concatenate([v[4] for v, lab in zip(views, labels) if lab == j]),
+                             cfg.max_fruit_radius_m) for j in range(len(centres))]
+        ids = [f]
+        for j in range(1, len(centres)):
+            at = fits[j][0] if fits[j] is not None else centres[j]
+            reach = max(cfg.max_match_distance_m, fits[j][1] + cfg.track_margin_m if fits[j] is not None else 0.0)
+            dist = np.linalg.norm(known_xyz - at, axis=1)
+            near = [(d, g) for d, g in zip(dist, known) if g != f and g not in ids and (
+                d <= reach or (g in spheres and d <= spheres[g][1] + cfg.track_margin_m))]
+            if near:
+                ids.append(min(near)[1])
+            else:
+                n_fruits += 1
+                ids.append(n_fruits)
+                classes.append(classes[f])
+        seg_cluster: dict[int, dict[int, int]] = defaultdict(dict)
+        for (fid, sid, *_), lab in zip(views, labels):
+            if lab >= 0:
+                seg_cluster[fid][sid] = int(lab)
+        if all(fit is not None for fit in fits):
+            balls = [(fit[0], float(fit[1])) for fit in fits]
+            for j, (g, ball) in enumerate(zip(ids, balls)):
+                if j == 0 or g not in spheres:   # a sphere for this fruit, new fruits and hosts without one
+                    sphere_of[g] = ball
+        else:  # the nearest seen-surface centre
+            balls = [(c, 1.0) for c in centres]
+        plans[f] = (ids, balls, seg_cluster)
+        ctx.count("fruits_split_by_detector")
+    if not plans:
+        return n_fruits
+    if n_fruits > 65535:
+        raise ValueError(f"panoptic_fusion: {n_fruits} fruits do not fit 16-bit instance PNGs (max 65535)")
+    fruit_class = np.asarray(classes, np.uint8)
+    for row in ctx.progress([r for r in rows if in_frame[r["frame_id"]] & set(plans)], "split fruits"):
+        fid = row["frame_id"]
+        fr = frames.loc[fid]
+        name = f"{fid:06d}.png"
+        sem = read_label(out_dir / "semantic" / name, "fused semantic")
+        inst = read_label(out_dir / "instance" / name, "fused instance")
+        depth = read_depth(depth_file[fid])
+        if cfg.surface_depth == "sensor":
+            depth = with_sensor_depth(depth, ctx.abspath(fr.depth_path), fr.depth_scale_m)
+        segments = fruit_segments(fr, ctx.data_root, dropped.get(fid))
+        k = np.array([fr.fx, fr.fy, fr.cx, fr.cy], np.float64)
+        c2w = cams[fid]
+        before = inst.copy()
+        for f in sorted(in_frame[fid] & set(plans)):
+            ids, balls, seg_cluster = plans[f]
+            moved = split_by_detector(inst, segments, depth, k, c2w, f, ids, balls, seg_cluster.get(fid, {}),
+                                      cfg.min_group_px)
+            ctx.count("pixels_moved_by_detector_split", moved)
+        if sphere_of:   # with the clusters' spheres: pieces without a sphere of their own join them
+            ctx.count("pixels_moved_to_their_surface",
+                      relabel_by_surface(inst, depth, k, c2w, sphere_of, cfg.track_margin_m))
+            if cfg.detector_fill:
+                ctx.count("pixels_filled_from_detector",
+                          fill_from_detector(inst, segments, depth, k, c2w, sphere_of, cfg.track_margin_m))
+        m = inst != before
+        sem[m] = fruit_class[inst[m]]
+        write_png(out_dir / "semantic" / name, sem)
+        write_png(out_dir / "instance" / name, inst)
+        row["n_fruits"] = int(len(np.unique(inst[inst > 0])))
+    return n_fruits
 
 
 def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]:
@@ -598,7 +798,8 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
                 lf.centre = surface_centre(pts, cfg.max_fruit_radius_m) if cfg.centre == "sphere" else lf.median
             local.append(lf)
 
-    # pass 3: associate across windows; row-level ids increase along the row (x, then z)
+    # pass 3: associate across windows; row-level ids increase along the row (x, then z; fruits split off by
+    # detector_split_m follow)
     groups = associate(local, masks, cfg)
     gcentre = [np.median(np.stack([local[i].centre for i in g]), 0) for g in groups]
     order = sorted(range(len(groups)), key=lambda j: (gcentre[j][0], gcentre[j][2], gcentre[j][1]))
@@ -632,6 +833,11 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
     dropped = dropped_segments(inputs.get("detections_filtered"))
     pick = views.assign(abs_off=views.offset.abs()).sort_values(["frame_id", "abs_off", "window_id"])
     n_win = views.groupby("frame_id").window_id.nunique()
+    split = cfg.detector_split_m > 0
+    seg_views: dict[int, list[tuple]] = defaultdict(list)  # fruit -> (frame, *segment_centres) of its segments
+    in_frame: dict[int, set[int]] = {}   # frame -> the fruits in its fused image
+    depth_file: dict[int, Path] = {}     # frame -> its fused depth PNG
+    cams: dict[int, np.ndarray] = {}     # frame -> camera pose (row frame)
     rows = []
     for fid, frame_views in ctx.progress(pick.groupby("frame_id", sort=True), "write fused frames",
                                          total=int(pick.frame_id.nunique())):
@@ -649,22 +855,31 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
             depth_path = ctx.relpath("panoptic", f"depth/{fid:06d}.png")
             (out_dir / "depth").mkdir(exist_ok=True)
             write_png(out_dir / "depth" / f"{fid:06d}.png", encode("depth", depth))
+        k = np.array([fr.fx, fr.fy, fr.cx, fr.cy], np.float64)
+        placed = depth
+        if cfg.surface_depth == "sensor" and (spheres or split):
+            placed = with_sensor_depth(depth, ctx.abspath(fr.depth_path), fr.depth_scale_m)
+        segments = None
+        if (cfg.detector_fill and spheres) or split:
+            segments = fruit_segments(fr, ctx.data_root, dropped.get(fid))
         if spheres:
             before = out_inst.copy()
-            placed = depth
-            if cfg.surface_depth == "sensor":
-                placed = with_sensor_depth(depth, ctx.abspath(fr.depth_path), fr.depth_scale_m)
-            k = np.array([fr.fx, fr.fy, fr.cx, fr.cy], np.float64)
             moved = relabel_by_surface(out_inst, placed, k, r.c2w, spheres, cfg.track_margin_m)
             if moved:
                 ctx.count("pixels_moved_to_their_surface", moved)
-            segments = fruit_segments(fr, ctx.data_root, dropped.get(fid)) if cfg.detector_fill else None
-            if segments is not None:
+            if cfg.detector_fill and segments is not None:
                 filled = fill_from_detector(out_inst, segments, placed, k, r.c2w, spheres, cfg.track_margin_m)
                 if filled:
                     ctx.count("pixels_filled_from_detector", filled)
             m = out_inst != before
             out_sem[m] = fruit_class[out_inst[m]]
+        if split and segments is not None:
+            for f, *view in segment_centres(out_inst, segments, placed, k, r.c2w, cfg.min_group_px,
+                                            cfg.max_points_per_view):
+                seg_views[f].append((fid, *view))
+        in_frame[fid] = set(np.unique(out_inst[out_inst > 0]).tolist())
+        depth_file[fid] = out_dir / "depth" / f"{fid:06d}.png" if composed else ctx.abspath(depth_path)
+        cams[fid] = r.c2w
         name = f"{fid:06d}.png"
         write_png(out_dir / "semantic" / name, out_sem)
         write_png(out_dir / "instance" / name, out_inst)
@@ -676,6 +891,13 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
                      "depth_path": depth_path,
                      "n_fruits": int(len(np.unique(out_inst[out_inst > 0]))),
                      **dict(zip(POSE_COLS, pose_txyzq(r.c2w[None])[0].tolist()))})
+    if seg_views:
+        centres = {local[g[0]].fruit_id: (spheres[local[g[0]].fruit_id][0] if local[g[0]].fruit_id in spheres
+                                          else gcentre[j]) for j, g in enumerate(groups)}
+        n_fruits = split_fruits(seg_views, in_frame, depth_file, cams, rows, spheres, centres, fruit_class, frames,
+                                dropped, out_dir, cfg, ctx)
+    else:
+        n_fruits = len(groups)
     slots = pd.DataFrame([{
         "window_id": lf.window_id, "slot": lf.slot, "part": lf.part, "fruit_id": lf.fruit_id,
         "class_id": lf.class_id, "n_frames": len({f for f, _ in lf.frames}), "n_px": lf.n_px,
@@ -683,7 +905,7 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
         "y_m": None if lf.centre is None else float(lf.centre[1]),
         "z_m": None if lf.centre is None else float(lf.centre[2]),
         "drop_reason": lf.drop_reason} for lf in local], columns=schemas.get("fruit_slots").names)
-    ctx.summary.update(windows=int(views.window_id.nunique()), frames=len(rows), fruits=len(groups),
+    ctx.summary.update(windows=int(views.window_id.nunique()), frames=len(rows), fruits=n_fruits,
                        frames_in_several_windows=len(shared_frames))
     return {"panoptic_frames": pd.DataFrame(rows, columns=schemas.get("panoptic_frames").names),
             "fruit_slots": slots}

@@ -334,6 +334,121 @@ def test_a_fruit_takes_the_pixels_of_its_detector_segment_that_lie_on_its_sphere
     assert (inst[left] == 0).all()
 
 
+def test_the_detector_shows_a_fused_fruit_as_two_when_two_lasting_clusters_share_a_frame():
+    x, y = np.array([0.0, 0.6, 0.8]), np.array([0.08, 0.6, 0.8])   # two touching fruits' seen-surface centres
+    jitter = np.random.default_rng(0).normal(0, 0.003, (40, 3))
+
+    def view(frame, seg, px, centre, i):
+        return (frame, seg, px, centre + jitter[i], np.zeros((0, 3)))
+
+    # frames 0-5 show x, frames 2-4 also y: two fruits, x (more pixels) first
+    views = [view(f, 1, 500, x, f) for f in range(6)] + [view(f, 2, 100, y, 10 + f) for f in range(2, 5)]
+    labels, centres = panoptic_fusion.detector_clusters(views, 0.03, 2)
+    assert list(labels) == [0] * 6 + [1] * 3
+    assert np.linalg.norm(centres[0] - x) < 0.005 and np.linalg.norm(centres[1] - y) < 0.005
+    # one fruit whose seen-surface centre drifts 2 cm a frame (entering the view) is one fruit
+    drift = [view(f, 1, 300, x + [0.02 * f, 0, 0], f) for f in range(5)]
+    assert panoptic_fusion.detector_clusters(drift, 0.03, 2)[1] == []
+    # two clusters never seen in one frame (a fruit seen first from one side, then from the other): one fruit
+    apart = [view(f, 1, 500, x, f) for f in range(3)] + [view(f, 1, 500, y, 10 + f) for f in range(3, 6)]
+    assert panoptic_fusion.detector_clusters(apart, 0.03, 2)[1] == []
+    # the second fruit in one frame only is not enough with min_frames 2; a segment merging both (its centre
+    # half-way) links nothing
+    once = [view(f, 1, 500, x, f) for f in range(6)] + [view(3, 2, 100, y, 20), view(4, 3, 600, (x + y) / 2, 21)]
+    labels, centres = panoptic_fusion.detector_clusters(once, 0.03, 2)
+    assert centres == [] and (labels == -1).all()
+    assert len(panoptic_fusion.detector_clusters(once, 0.03, 1)[1]) == 3
+    assert panoptic_fusion.detector_clusters(views, 0.0, 2)[1] == []
+    with pytest.raises(ValueError, match="detector_split_m"):
+        panoptic_fusion.Config(detector_split_m=-0.01)
+
+
+def test_a_fused_fruit_split_by_the_detector_hands_its_pixels_to_the_fruits_it_holds():
+    k = np.array([100.0, 100.0, 40.0, 30.0])
+    a, b = (np.array([-0.03, 0.0, 0.5]), 0.03), (np.array([0.035, 0.0, 0.52]), 0.035)    # touching fruits
+    depth, who = sphere_depth(k, (60, 80), [a, b], background_m=2.0)
+    inst = np.where(who >= 0, 4, 0).astype(np.uint16)             # the render painted both with fruit 4
+    segments = np.where(who == 0, 8, np.where(who == 1, 9, 0))
+    segments[(who == 1) & (np.arange(80)[None] > 50)] = 0          # the detector's mask of b is partial
+    views = panoptic_fusion.segment_centres(inst, segments, depth, k, np.eye(4), min_px=10, max_points=50)
+    assert sorted((f, s) for f, s, *_ in views) == [(4, 8), (4, 9)]
+    assert all(len(v[4]) <= 50 for v in views)
+    stuff = segments.copy()
+    stuff[who < 0] = 9                                             # segment 9 lies mostly on the background
+    views = panoptic_fusion.segment_centres(inst, stuff, depth, k, np.eye(4), min_px=10, max_points=50)
+    assert [(f, s) for f, s, *_ in views] == [(4, 8)]
+    moved = panoptic_fusion.split_by_detector(inst, segments, depth, k, np.eye(4), 4, [4, 12], [a, b],
+                                              {8: 0, 9: 1}, min_px=10)
+    assert moved == (who == 1).sum()
+    assert (inst[who == 0] == 4).all() and (inst[who == 1] == 12).all() and (inst[who < 0] == 0).all()
+    # a frame without b's segment: b's pixels still go to its sphere, being many; a few stray pixels do not
+    inst = np.where(who >= 0, 4, 0).astype(np.uint16)
+    only_a = np.where(who == 0, 8, 0)
+    panoptic_fusion.split_by_detector(inst, only_a, depth, k, np.eye(4), 4, [4, 12], [a, b], {8: 0}, min_px=10)
+    assert (inst[who == 1] == 12).all()
+    inst = np.where(who >= 0, 4, 0).astype(np.uint16)
+    few = (who == 1) & (np.cumsum(who == 1, axis=None).reshape(who.shape) <= 5)
+    inst[(who == 1) & ~few] = 0
+    assert panoptic_fusion.split_by_detector(inst, only_a, depth, k, np.eye(4), 4, [4, 12], [a, b], {8: 0},
+                                             min_px=10) == 0
+
+
+def test_split_fruits_rewrites_the_fused_frames_of_a_fruit_painted_over_two(tmp_path):
+    from pipeline.images import write_png
+    k = np.array([100.0, 100.0, 40.0, 30.0])
+    a, b = (np.array([-0.03, 0.0, 0.5]), 0.03), (np.array([0.035, 0.0, 0.52]), 0.035)    # touching fruits
+    depth, who = sphere_depth(k, (60, 80), [a, b], background_m=2.0)
+    cls = THING_IDS[0]
+    out_dir = tmp_path / "panoptic"
+    rows, frames = [], []
+    for fid in range(3):
+        name = f"{fid:06d}.png"
+        det = np.where(who == 0, 8, 9) * (who >= 0)
+        for kind, img in (("semantic", np.where(who >= 0, cls, 1)), ("instance", np.where(who >= 0, 4, 0)),
+                          ("det_sem", np.where(who >= 0, cls, 1)), ("det_inst", det)):
+            (tmp_path / kind).mkdir(exist_ok=True)
+            write_png(tmp_path / kind / name, img.astype(np.uint16 if "inst" in kind else np.uint8))
+        (tmp_path / "depth").mkdir(exist_ok=True)
+        write_png(tmp_path / "depth" / name, np.round(depth * 1000).astype(np.uint16))
+        rows.append({"frame_id": fid, "n_fruits": 1})
+        frames.append({"frame_id": fid, "height": 60, "width": 80, "fx": k[0], "fy": k[1], "cx": k[2], "cy": k[3],
+                       "depth_path": f"depth/{name}", "depth_scale_m": 0.001, "det_semantic_path": f"det_sem/{name}",
+                       "det_instance_path": f"det_inst/{name}"})
+    frames = pd.DataFrame(frames).set_index("frame_id", drop=False)
+    cfg = panoptic_fusion.Config()
+
+    def run(fruit_centres, n_ids):
+        out_dir.mkdir(exist_ok=True)
+        for kind in ("semantic", "instance"):
+            (out_dir / kind).mkdir(exist_ok=True)
+            for fid in range(3):
+                (out_dir / kind / f"{fid:06d}.png").write_bytes((tmp_path / kind / f"{fid:06d}.png").read_bytes())
+        seg_views = {4: []}
+        for fid in range(3):
+            segs = fruit_segments(frames.loc[fid], tmp_path)
+            for f, *view in panoptic_fusion.segment_centres(np.where(who >= 0, 4, 0), segs, depth, k, np.eye(4),
+                                                            cfg.min_group_px, cfg.max_points_per_view):
+                seg_views[f].append((fid, *view))
+        ctx = StageContext(stage="panoptic_fusion", seq=SEQ, data_root=tmp_path, show_progress=False)
+        n = panoptic_fusion.split_fruits(seg_views, {f: {4} for f in range(3)},
+                                         {f: tmp_path / "depth" / f"{f:06d}.png" for f in range(3)},
+                                         {f: np.eye(4) for f in range(3)}, rows, {}, fruit_centres,
+                                         np.full(n_ids + 1, cls, np.uint8), frames, {}, out_dir, cfg, ctx)
+        return n, [read_label(out_dir / "instance" / f"{f:06d}.png", "x") for f in range(3)], ctx.summary
+
+    # fruit 4 (no plausible sphere: it holds two fruits) keeps the larger, the other becomes fruit 5
+    n, insts, summary = run({4: (a[0] + b[0]) / 2}, 4)
+    assert n == 5 and summary["fruits_split_by_detector"] == 1 and [r["n_fruits"] for r in rows] == [2, 2, 2]
+    big = 4 if (who == 0).sum() > (who == 1).sum() else 5
+    for inst in insts:
+        assert (inst[who == 0] == (4 if big == 4 else 5)).all() and (inst[who == 1] == (5 if big == 4 else 4)).all()
+        assert (inst[who < 0] == 0).all()
+    # where another fruit's centre lies at the split-off cluster's sphere, the cluster joins that fruit
+    other = 1 if big == 4 else 0
+    n, insts, _ = run({4: (a[0] + b[0]) / 2, 6: (a, b)[other][0] + 0.01}, 6)
+    assert n == 6 and all(set(np.unique(inst[who == other])) == {6} for inst in insts)
+
+
 def test_the_detector_fruit_segments_leave_out_stuff_and_the_segments_the_depth_filter_dropped(tmp_path):
     sem = np.full((4, 6), 1, np.uint8)
     inst = np.zeros((4, 6), np.uint16)
