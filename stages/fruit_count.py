@@ -18,7 +18,7 @@ from pipeline.images import ImageError, read_label
 from pipeline.stage import StageContext
 from nerf.surfaces import fit_sphere, plausible_fit, principal_extents, robust_centre, unproject
 from rowmap.colours import id_colours
-from rowmap.geometry import subsample, with_sensor_depth
+from rowmap.geometry import runs_by_key, subsample, with_sensor_depth
 from rowmap.renders import read_depth
 from rowmap.scoring import reference_pixels
 
@@ -267,11 +267,8 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
         c2w = pose_matrix(np.array([r.tx, r.ty, r.tz, r.qx, r.qy, r.qz, r.qw], np.float64))  # row frame
         k = np.array([fr.fx, fr.fy, fr.cx, fr.cy], np.float64)
         v, u = np.nonzero(inst > 0)
-        ids = inst[v, u]
-        order = np.argsort(ids, kind="stable")
-        v, u, ids = v[order], u[order], ids[order]
-        starts = np.flatnonzero(np.r_[True, ids[1:] != ids[:-1]]) if len(ids) else np.array([], int)
-        for s0, s1 in zip(starts, np.r_[starts[1:], len(ids)]):
+        v, u, ids, starts, ends = runs_by_key(v, u, inst[v, u])
+        for s0, s1 in zip(starts, ends):
             fruit = int(ids[s0])
             vv, uu = v[s0:s1], u[s0:s1]
             d = depth[vv, uu]

@@ -19,7 +19,8 @@ from pipeline.classes import THING_IDS, VOID
 from pipeline.images import ImageError, read_label, write_png
 from pipeline.stage import StageContext
 from rowmap.detections import dropped_segments, fruit_segments
-from rowmap.geometry import POSE_COLS, pixel_groups, subsample, surface_centre, window_alignments, with_sensor_depth
+from rowmap.geometry import (POSE_COLS, pixel_groups, runs_by_key, subsample, surface_centre, window_alignments,
+                             with_sensor_depth)
 from rowmap.renders import PANOPTIC_KINDS, Renders, encode, read_depth
 
 INPUTS = ("frames", "windows", "window_poses", "window_metrics", "nerf", "renders", "images", "detections_filtered")
@@ -484,10 +485,7 @@ def segment_centres(inst: np.ndarray, segments: np.ndarray, depth: np.ndarray, k
     if not len(v):
         return []
     key = inst[v, u].astype(np.int64) * len(size) + segments[v, u]      # one number per (fruit, segment)
-    order = np.argsort(key, kind="stable")
-    v, u, key = v[order], u[order], key[order]
-    starts = np.flatnonzero(np.r_[True, key[1:] != key[:-1]])
-    ends = np.r_[starts[1:], len(key)]
+    v, u, key, starts, ends = runs_by_key(v, u, key)
     out, taken = [], set()
     for j in np.argsort(-(ends - starts), kind="stable"):
         f, sid = divmod(int(key[starts[j]]), len(size))
@@ -750,12 +748,9 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
                 masks[(wid, fid)] = group
             continue
         v, u = np.nonzero(thing)
-        ids = inst[v, u]
-        order = np.argsort(ids, kind="stable")
-        v, u, ids = v[order], u[order], ids[order]
-        starts = np.flatnonzero(np.r_[True, ids[1:] != ids[:-1]])
+        v, u, ids, starts, ends = runs_by_key(v, u, inst[v, u])
         k = np.array([fr.fx, fr.fy, fr.cx, fr.cy], np.float64)
-        for s0, s1 in zip(starts, np.r_[starts[1:], len(ids)]):
+        for s0, s1 in zip(starts, ends):
             vv, uu = v[s0:s1], u[s0:s1]
             good = depth[vv, uu] > 0
             pts = unproject(depth, k, r.c2w, vv[good], uu[good])

@@ -16,7 +16,7 @@ from pipeline.classes import THING_IDS
 from pipeline.images import ImageError, read_label
 from pipeline.stage import StageContext
 from rowmap.detections import dropped_segments, fruit_segments
-from rowmap.geometry import pixel_groups, surface_centre, window_alignments, with_sensor_depth
+from rowmap.geometry import pixel_groups, runs_by_key, surface_centre, window_alignments, with_sensor_depth
 from rowmap.renders import file_name
 from rowmap.scoring import reference_pixels
 from stages import evaluate, fruit_count, panoptic_fusion, report
@@ -205,6 +205,16 @@ def test_a_sliver_with_a_poor_centre_still_joins_the_fruit_whose_mask_holds_it()
     m_b[:] = 0
     m_b[:3, :3] = panoptic_fusion.code(8, 0)
     assert panoptic_fusion.pair_cost(a, too_far, masks, cfg) == np.inf
+
+
+def test_runs_by_key_gives_each_labels_pixels_in_image_order():
+    labels = np.array([[0, 3, 3], [5, 3, 0], [5, 5, 3]])
+    v, u = np.nonzero(labels > 0)
+    v, u, key, starts, ends = runs_by_key(v, u, labels[v, u])
+    runs = {int(key[s]): list(zip(v[s:e].tolist(), u[s:e].tolist())) for s, e in zip(starts, ends)}
+    assert runs == {3: [(0, 1), (0, 2), (1, 1), (2, 2)], 5: [(1, 0), (2, 0), (2, 1)]}
+    none = runs_by_key(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.int64))
+    assert len(none[3]) == len(none[4]) == 0
 
 
 def test_a_slot_over_two_fruits_in_one_frame_splits_into_groups_that_join_their_own_fruit():
