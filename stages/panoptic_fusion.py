@@ -129,10 +129,9 @@ class Config:
     another joins an existing fruit at its place (centres within max_match_distance_m, or one inside the
     other's sphere) or becomes a new fruit (ids after those of the row). In each frame a cluster's segments
     go to it and the fruit's other pixels to the cluster whose sphere they lie deepest in (track_margin_m and
-    detector_fill then run again with those spheres). About the
-    largest shift of a fruit's seen-surface centre between two neighbouring frames (it moves as the fruit
-    enters the view or hides behind a leaf), well under the distance of two touching fruits' centres. Needs
-    detector output."""
+    detector_fill then run again with those spheres). About the largest shift of a fruit's seen-surface centre
+    between two neighbouring frames (it moves as the fruit enters the view or hides behind a leaf), well under
+    the distance of two touching fruits' centres. Needs detector output."""
     compose_shared_frames: bool = True
     """in a frame several overlapping windows rendered, take each fruit's pixels from the window that saw the
     fruit in the most rendered frames (then pixels), not every pixel from the window whose centre is nearest.
@@ -468,6 +467,20 @@ def fill_from_detector(inst: np.ndarray, segments: np.ndarray, depth: np.ndarray
     return filled
 
 
+def surface_rules(inst: np.ndarray, segments: np.ndarray | None, depth: np.ndarray, k: np.ndarray,
+                  c2w: np.ndarray, spheres: dict[int, tuple[np.ndarray, float]], cfg: Config,
+                  ctx: StageContext) -> None:
+    """track_margin_m (relabel_by_surface) and then detector_fill (fill_from_detector, where the frame has
+    detector segments) on one fused frame (`inst` changed in place), their pixels counted in the summary."""
+    moved = relabel_by_surface(inst, depth, k, c2w, spheres, cfg.track_margin_m)
+    if moved:
+        ctx.count("pixels_moved_to_their_surface", moved)
+    if cfg.detector_fill and segments is not None:
+        filled = fill_from_detector(inst, segments, depth, k, c2w, spheres, cfg.track_margin_m)
+        if filled:
+            ctx.count("pixels_filled_from_detector", filled)
+
+
 def segment_centres(inst: np.ndarray, segments: np.ndarray, depth: np.ndarray, k: np.ndarray, c2w: np.ndarray,
                     min_px: int, max_points: int) -> list[tuple[int, int, int, np.ndarray, np.ndarray]]:
     """(fruit id, segment id, pixels, centre [3], points [n, 3]) for each detector segment of a fused frame that
@@ -675,7 +688,8 @@ def split_fruits(seg_views: dict, in_frame: dict[int, set[int]], depth_file: dic
     if n_fruits > 65535:
         raise ValueError(f"panoptic_fusion: {n_fruits} fruits do not fit 16-bit instance PNGs (max 65535)")
     fruit_class = np.asarray(classes, np.uint8)
-    for row in ctx.progress([r for r in rows if in_frame[r["frame_id"]] & set(plans)], "split fruits"):
+    split = set(plans)
+    for row in ctx.progress([r for r in rows if in_frame[r["frame_id"]] & split], "split fruits"):
         fid = row["frame_id"]
         fr = frames.loc[fid]
         name = f"{fid:06d}.png"
@@ -688,17 +702,13 @@ def split_fruits(seg_views: dict, in_frame: dict[int, set[int]], depth_file: dic
         k = np.array([fr.fx, fr.fy, fr.cx, fr.cy], np.float64)
         c2w = cams[fid]
         before = inst.copy()
-        for f in sorted(in_frame[fid] & set(plans)):
+        for f in sorted(in_frame[fid] & split):
             ids, balls, seg_cluster = plans[f]
             moved = split_by_detector(inst, segments, depth, k, c2w, f, ids, balls, seg_cluster.get(fid, {}),
                                       cfg.min_group_px)
             ctx.count("pixels_moved_by_detector_split", moved)
         if sphere_of:   # with the clusters' spheres: pieces without a sphere of their own join them
-            ctx.count("pixels_moved_to_their_surface",
-                      relabel_by_surface(inst, depth, k, c2w, sphere_of, cfg.track_margin_m))
-            if cfg.detector_fill:
-                ctx.count("pixels_filled_from_detector",
-                          fill_from_detector(inst, segments, depth, k, c2w, sphere_of, cfg.track_margin_m))
+            surface_rules(inst, segments, depth, k, c2w, sphere_of, cfg, ctx)
         m = inst != before
         sem[m] = fruit_class[inst[m]]
         write_png(out_dir / "semantic" / name, sem)
@@ -859,20 +869,15 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
             segments = fruit_segments(fr, ctx.data_root, dropped.get(fid))
         if spheres:
             before = out_inst.copy()
-            moved = relabel_by_surface(out_inst, placed, k, r.c2w, spheres, cfg.track_margin_m)
-            if moved:
-                ctx.count("pixels_moved_to_their_surface", moved)
-            if cfg.detector_fill and segments is not None:
-                filled = fill_from_detector(out_inst, segments, placed, k, r.c2w, spheres, cfg.track_margin_m)
-                if filled:
-                    ctx.count("pixels_filled_from_detector", filled)
+            surface_rules(out_inst, segments, placed, k, r.c2w, spheres, cfg, ctx)
             m = out_inst != before
             out_sem[m] = fruit_class[out_inst[m]]
         if split and segments is not None:
             for f, *view in segment_centres(out_inst, segments, placed, k, r.c2w, cfg.min_group_px,
                                             cfg.max_points_per_view):
                 seg_views[f].append((fid, *view))
-        in_frame[fid] = set(np.unique(out_inst[out_inst > 0]).tolist())
+        present = np.unique(out_inst[out_inst > 0])
+        in_frame[fid] = set(present.tolist())
         depth_file[fid] = out_dir / "depth" / f"{fid:06d}.png" if composed else ctx.abspath(depth_path)
         cams[fid] = r.c2w
         name = f"{fid:06d}.png"
@@ -884,7 +889,7 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
                      "instance_path": ctx.relpath("panoptic", f"instance/{name}"),
                      "rgb_path": renders.relpath(wid, fid, "rgb"),
                      "depth_path": depth_path,
-                     "n_fruits": int(len(np.unique(out_inst[out_inst > 0]))),
+                     "n_fruits": len(present),
                      **dict(zip(POSE_COLS, pose_txyzq(r.c2w[None])[0].tolist()))})
     if seg_views:
         centres = {local[g[0]].fruit_id: (spheres[local[g[0]].fruit_id][0] if local[g[0]].fruit_id in spheres
