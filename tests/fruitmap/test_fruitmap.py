@@ -344,6 +344,46 @@ def test_a_fruit_takes_the_pixels_of_its_detector_segment_that_lie_on_its_sphere
     assert (inst[left] == 0).all()
 
 
+def test_a_fruit_cut_off_by_the_side_edge_takes_its_sliver_there_from_its_sphere():
+    k = np.array([100.0, 100.0, 40.0, 30.0])
+    a, b = (np.array([-0.2, 0.0, 0.5]), 0.03), (np.array([0.0, 0.0, 0.5]), 0.03)  # a: cut off by the left edge
+    depth, who = sphere_depth(k, (60, 80), [a, b], background_m=2.0)
+    truth = np.where(who == 0, 1, np.where(who == 1, 2, 0)).astype(np.uint16)
+    cols = np.arange(80)[None]
+    sliver, inner = (who == 0) & (cols < 4), (who == 1) & (cols < 38)     # painted as leaf by the render
+    assert sliver.sum() > 10 and inner.sum() > 10
+    inst = truth.copy()
+    inst[sliver | inner] = 0
+    spheres = {1: a, 2: b, 3: (np.array([2.0, 0.0, 0.5]), 0.03)}            # fruit 3 is out of view
+    before = inst.copy()
+    # only the band along the side edges is filled: fruit 2's pixels in the middle keep the render's label
+    assert panoptic_fusion.fill_at_border(inst, depth, k, np.eye(4), spheres, 0.01, 4) == sliver.sum()
+    assert (inst[sliver] == 1).all() and (inst[inner] == 0).all() and (inst[who == -1] == 0).all()
+    # a leaf 2 cm in front of the fruit, and one 1.5 cm beyond its outline behind it, are not taken
+    v, u = np.mgrid[0:60, 0:80]
+    ray = np.stack([(u + 0.5 - k[2]) / k[0], (v + 0.5 - k[3]) / k[1], np.ones((60, 80))], -1)
+    unit = ray / np.linalg.norm(ray, axis=-1, keepdims=True)
+    along = unit @ a[0]
+    beside = np.linalg.norm(along[..., None] * unit - a[0], axis=-1)
+    behind = (who == -1) & (cols < 4) & (beside < a[1] + 0.003)
+    assert behind.sum() > 3
+    leaves = np.where(sliver, depth - 0.02, np.where(behind, (along + 0.015) * unit[..., 2], depth))
+    inst = before.copy()
+    assert panoptic_fusion.fill_at_border(inst, leaves, k, np.eye(4), spheres, 0.01, 4) == 0
+    # where the point lies on two spheres' front surfaces, the one it lies deepest in takes it (fruit 4's, 2 mm
+    # wider around the same centre); no band, no margin or no sphere: nothing
+    wide = {1: a, 4: (a[0], a[1] + 0.002)}
+    inst = before.copy()
+    assert panoptic_fusion.fill_at_border(inst, depth, k, np.eye(4), wide, 0.01, 4) == sliver.sum()
+    assert (inst[sliver] == 4).all()
+    assert panoptic_fusion.fill_at_border(inst, depth, k, np.eye(4), {1: a}, 0.01, 4) == 0   # nothing left free
+    for band, margin, balls in ((0, 0.01, spheres), (4, 0.0, spheres), (4, 0.01, {})):
+        inst = before.copy()
+        assert panoptic_fusion.fill_at_border(inst, depth, k, np.eye(4), balls, margin, band) == 0
+    with pytest.raises(ValueError, match="border_fill_px"):
+        panoptic_fusion.Config(border_fill_px=-1)
+
+
 def test_the_detector_shows_a_fused_fruit_as_two_when_two_lasting_clusters_share_a_frame():
     x, y = np.array([0.0, 0.6, 0.8]), np.array([0.08, 0.6, 0.8])   # two touching fruits' seen-surface centres
     jitter = np.random.default_rng(0).normal(0, 0.003, (40, 3))
@@ -559,11 +599,12 @@ def test_a_frame_the_nearest_window_rendered_without_its_fruits_takes_them_from_
             sem, slots = np.where(slots > 0, 1, sem), np.zeros_like(slots)
         return sem, slots
 
-    render_only = "panoptic_fusion.detector_fill=false"   # the fruit pixels the windows rendered, nothing added
+    # the fruit pixels the windows rendered, nothing added
+    render_only = ("panoptic_fusion.detector_fill=false", "panoptic_fusion.border_fill_px=0")
     whole = make_row(name="whole")
-    whole.runner(render_only).run(["panoptic_fusion"], force=True)
+    whole.runner(*render_only).run(["panoptic_fusion"], force=True)
     row = make_row(hook=lose_fruits)
-    row.runner(render_only).run(["panoptic_fusion"], force=True)
+    row.runner(*render_only).run(["panoptic_fusion"], force=True)
     pf = pd.read_parquet(row.processed / "panoptic_frames.parquet").set_index("frame_id")
     pf_whole = pd.read_parquet(whole.processed / "panoptic_frames.parquet").set_index("frame_id")
     n_fruit_px = 0
@@ -577,7 +618,7 @@ def test_a_frame_the_nearest_window_rendered_without_its_fruits_takes_them_from_
             assert pf.loc[f, "window_id"] == nearest[f] and "panoptic/depth/" in pf.loc[f, "depth_path"]
             assert (row.root / pf.loc[f, "depth_path"]).exists()
     assert n_fruit_px > 0
-    row.runner("panoptic_fusion.compose_shared_frames=false", render_only).run(["panoptic_fusion"], force=True)
+    row.runner("panoptic_fusion.compose_shared_frames=false", *render_only).run(["panoptic_fusion"], force=True)
     pf = pd.read_parquet(row.processed / "panoptic_frames.parquet").set_index("frame_id")
     assert all((read_label(row.root / pf.loc[f, "instance_path"], "fused") == 0).all() for f in nearest)
 
