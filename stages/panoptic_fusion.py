@@ -118,15 +118,16 @@ class Config:
     sliver of a fruit entering or leaving the image, as leaf; the detector and the depth sensor still see the
     fruit there. Needs spheres (track_margin_m > 0) and detector output; segments the depth filter dropped are
     not used. Off = the fused fruits have the render's pixels only."""
-    border_fill_px: int = 8
+    border_band_px: int = 8
     """reference pixels (as in a 320x180 image, scaled with the image's size), >= 0; 0 = off. In a band this
-    wide along the image's left and right edges, a pixel that carries no fruit, whose ray crosses a fruit's
-    sphere and whose 3D point (placed with surface_depth) lies within track_margin_m of where the ray enters
-    that sphere goes to that fruit. A fruit entering or leaving the view shows a sliver at the image's side
-    edge; the detector misses or drops most cut-off fruits, so the render learns to paint that sliver as leaf,
-    while the fruit's sphere, measured in the frames that see it whole, still places it. A leaf beside the
-    fruit (its ray misses the sphere), in front of it or behind it is not taken, so a wider band mostly costs
-    time. Needs spheres (track_margin_m > 0)."""
+    wide along the image's left and right edges, a pixel whose ray crosses a fruit's sphere and whose 3D point
+    (placed with surface_depth) lies within track_margin_m of where the ray enters that sphere (its front
+    surface) goes to that fruit, unless the fruit it carries has its front surface there too. A fruit entering
+    or leaving the view shows a sliver at the image's side edge; the detector misses or drops most cut-off
+    fruits, so the render learns to paint that sliver as leaf or with the neighbour's slot, while the fruit's
+    sphere, measured in the frames that see it whole, still places it. A leaf beside the fruit (its ray misses
+    the sphere), in front of it or behind it is not taken, so a wider band mostly costs time. Needs spheres
+    (track_margin_m > 0)."""
     detector_split_m: float = 0.03
     """metres, >= 0; 0 = off. A fused fruit that the detector shows as several fruits is split. In every fused
     frame each detector segment lying mostly on fused fruits is given to the fruit holding most of it (at least
@@ -166,8 +167,8 @@ class Config:
                              "min_split_frames >= 1")
         if not self.track_margin_m >= 0:
             raise ValueError(f"panoptic_fusion.track_margin_m must be >= 0, got {self.track_margin_m}")
-        if self.border_fill_px < 0:
-            raise ValueError(f"panoptic_fusion.border_fill_px must be >= 0, got {self.border_fill_px}")
+        if self.border_band_px < 0:
+            raise ValueError(f"panoptic_fusion.border_band_px must be >= 0, got {self.border_band_px}")
         if not self.detector_split_m >= 0:
             raise ValueError(f"panoptic_fusion.detector_split_m must be >= 0, got {self.detector_split_m}")
         if self.group_gap_m < 0 or self.min_group_px < 1:
@@ -431,20 +432,21 @@ def relabel_by_surface(inst: np.ndarray, depth: np.ndarray, k: np.ndarray, c2w: 
     return int(move.sum())
 
 
-def fill_at_border(inst: np.ndarray, depth: np.ndarray, k: np.ndarray, c2w: np.ndarray,
-                   spheres: dict[int, tuple[np.ndarray, float]], margin_m: float, band_px: int) -> int:
-    """Give each pixel of a fused frame (`inst` [H, W] fruit ids, changed in place) within `band_px` columns of
-    the left or right image edge that carries no fruit, whose ray crosses a sphere of `spheres` and whose point
-    (z-depth `depth` in m, intrinsics k = (fx, fy, cx, cy), pose c2w) lies within margin_m of where the ray
-    enters that sphere, to that sphere's fruit (the one whose centre is nearest, relative to its radius, where
-    several qualify). A leaf beside the fruit (its ray misses the sphere), in front of it or behind its outline
-    is not taken. Returns the pixels filled."""
+def border_surfaces(inst: np.ndarray, depth: np.ndarray, k: np.ndarray, c2w: np.ndarray,
+                    spheres: dict[int, tuple[np.ndarray, float]], margin_m: float, band_px: int) -> int:
+    """Within `band_px` columns of the left or right edge of a fused frame (`inst` [H, W] fruit ids, changed in
+    place), give each pixel whose ray crosses a sphere of `spheres` and whose point (z-depth `depth` in m,
+    intrinsics k = (fx, fy, cx, cy), pose c2w) lies within margin_m of where the ray enters that sphere (its
+    front surface) to that sphere's fruit, unless the pixel's own fruit's front surface holds it too. Where
+    several front surfaces hold a point, the sphere whose centre is nearest relative to its radius wins. A leaf
+    beside a fruit (its ray misses the sphere), in front of it or behind it is not taken. Returns the pixels
+    given a fruit or moved to another."""
     h, w = inst.shape
     band_px = min(band_px, w // 2)
     if margin_m <= 0 or band_px <= 0 or not spheres:
         return 0
     cols = np.r_[0:band_px, w - band_px:w]
-    v, j = np.nonzero((inst[:, cols] == 0) & (depth[:, cols] > 0))
+    v, j = np.nonzero(depth[:, cols] > 0)
     if not len(v):
         return 0
     u = cols[j]
@@ -457,6 +459,8 @@ def fill_at_border(inst: np.ndarray, depth: np.ndarray, k: np.ndarray, c2w: np.n
     if not near.any():
         return 0
     ids, centres, radii = ids[near], centres[near], radii[near]
+    column = np.full(max(int(inst.max()), int(ids.max())) + 1, -1)   # fruit id -> its sphere here (-1: none)
+    column[ids] = np.arange(len(ids))
     p = unproject(depth, k, c2w, v, u)
     ray = p - c2w[:3, 3]
     dist = np.linalg.norm(ray, axis=1)
@@ -466,8 +470,11 @@ def fill_at_border(inst: np.ndarray, depth: np.ndarray, k: np.ndarray, c2w: np.n
     enter = foot - np.sqrt(np.maximum(radii[None] ** 2 - miss2, 0.0))   # where the ray enters the sphere
     on = (miss2 <= radii[None] ** 2) & (np.abs(dist[:, None] - enter) <= margin_m)
     rel = np.where(on, np.sqrt(np.maximum(miss2, 0.0) + (dist[:, None] - foot) ** 2) / radii[None], np.inf)
+    rows = np.arange(len(p))
     best = rel.argmin(1)
-    ok = np.isfinite(rel[np.arange(len(p)), best])
+    own = column[inst[v, u]]
+    on_own = (own >= 0) & on[rows, np.maximum(own, 0)]
+    ok = np.isfinite(rel[rows, best]) & ~on_own & (best != own)
     inst[v[ok], u[ok]] = ids[best[ok]]
     return int(ok.sum())
 
@@ -524,7 +531,7 @@ def surface_rules(inst: np.ndarray, segments: np.ndarray | None, depth: np.ndarr
                   c2w: np.ndarray, spheres: dict[int, tuple[np.ndarray, float]], cfg: Config,
                   ctx: StageContext) -> None:
     """track_margin_m (relabel_by_surface), detector_fill (fill_from_detector, where the frame has detector
-    segments) and border_fill_px (fill_at_border) on one fused frame (`inst` changed in place), their pixels
+    segments) and border_band_px (border_surfaces) on one fused frame (`inst` changed in place), their pixels
     counted in the summary."""
     moved = relabel_by_surface(inst, depth, k, c2w, spheres, cfg.track_margin_m)
     if moved:
@@ -533,11 +540,11 @@ def surface_rules(inst: np.ndarray, segments: np.ndarray | None, depth: np.ndarr
         filled = fill_from_detector(inst, segments, depth, k, c2w, spheres, cfg.track_margin_m)
         if filled:
             ctx.count("pixels_filled_from_detector", filled)
-    if cfg.border_fill_px:
-        band = int(np.ceil(cfg.border_fill_px * np.sqrt(max(1.0, inst.size / BASE_PIXELS)) - 1e-9))
-        filled = fill_at_border(inst, depth, k, c2w, spheres, cfg.track_margin_m, band)
-        if filled:
-            ctx.count("pixels_filled_at_border", filled)
+    if cfg.border_band_px:
+        band = int(np.ceil(cfg.border_band_px * np.sqrt(max(1.0, inst.size / BASE_PIXELS)) - 1e-9))
+        moved = border_surfaces(inst, depth, k, c2w, spheres, cfg.track_margin_m, band)
+        if moved:
+            ctx.count("pixels_given_at_the_border", moved)
 
 
 def segment_centres(inst: np.ndarray, segments: np.ndarray, depth: np.ndarray, k: np.ndarray, c2w: np.ndarray,

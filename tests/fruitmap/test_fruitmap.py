@@ -356,9 +356,14 @@ def test_a_fruit_cut_off_by_the_side_edge_takes_its_sliver_there_from_its_sphere
     inst[sliver | inner] = 0
     spheres = {1: a, 2: b, 3: (np.array([2.0, 0.0, 0.5]), 0.03)}            # fruit 3 is out of view
     before = inst.copy()
-    # only the band along the side edges is filled: fruit 2's pixels in the middle keep the render's label
-    assert panoptic_fusion.fill_at_border(inst, depth, k, np.eye(4), spheres, 0.01, 4) == sliver.sum()
+    # only the band along the side edges is given: fruit 2's pixels in the middle keep the render's label
+    assert panoptic_fusion.border_surfaces(inst, depth, k, np.eye(4), spheres, 0.01, 4) == sliver.sum()
     assert (inst[sliver] == 1).all() and (inst[inner] == 0).all() and (inst[who == -1] == 0).all()
+    assert panoptic_fusion.border_surfaces(inst, depth, k, np.eye(4), spheres, 0.01, 4) == 0   # nothing to do
+    # the sliver painted with the neighbour's slot goes back to the fruit whose front surface holds it
+    inst[sliver] = 2
+    assert panoptic_fusion.border_surfaces(inst, depth, k, np.eye(4), spheres, 0.01, 4) == sliver.sum()
+    assert (inst[sliver] == 1).all()
     # a leaf 2 cm in front of the fruit, and one 1.5 cm beyond its outline behind it, are not taken
     v, u = np.mgrid[0:60, 0:80]
     ray = np.stack([(u + 0.5 - k[2]) / k[0], (v + 0.5 - k[3]) / k[1], np.ones((60, 80))], -1)
@@ -369,19 +374,24 @@ def test_a_fruit_cut_off_by_the_side_edge_takes_its_sliver_there_from_its_sphere
     assert behind.sum() > 3
     leaves = np.where(sliver, depth - 0.02, np.where(behind, (along + 0.015) * unit[..., 2], depth))
     inst = before.copy()
-    assert panoptic_fusion.fill_at_border(inst, leaves, k, np.eye(4), spheres, 0.01, 4) == 0
+    assert panoptic_fusion.border_surfaces(inst, leaves, k, np.eye(4), spheres, 0.01, 4) == 0
     # where the point lies on two spheres' front surfaces, the one it lies deepest in takes it (fruit 4's, 2 mm
-    # wider around the same centre); no band, no margin or no sphere: nothing
+    # wider around the same centre), but a pixel stays with its own fruit where that fruit's front surface holds it
     wide = {1: a, 4: (a[0], a[1] + 0.002)}
-    inst = before.copy()
-    assert panoptic_fusion.fill_at_border(inst, depth, k, np.eye(4), wide, 0.01, 4) == sliver.sum()
+    assert panoptic_fusion.border_surfaces(inst, depth, k, np.eye(4), wide, 0.01, 4) == sliver.sum()
     assert (inst[sliver] == 4).all()
-    assert panoptic_fusion.fill_at_border(inst, depth, k, np.eye(4), {1: a}, 0.01, 4) == 0   # nothing left free
+    inst[sliver] = 1
+    assert panoptic_fusion.border_surfaces(inst, depth, k, np.eye(4), wide, 0.01, 4) == 0
+    # a fruit without a sphere gives the pixels on another's front surface to it
+    inst[sliver] = 4
+    assert panoptic_fusion.border_surfaces(inst, depth, k, np.eye(4), {1: a}, 0.01, 4) == sliver.sum()
+    assert (inst[sliver] == 1).all()
+    # no band, no margin or no sphere: nothing
     for band, margin, balls in ((0, 0.01, spheres), (4, 0.0, spheres), (4, 0.01, {})):
         inst = before.copy()
-        assert panoptic_fusion.fill_at_border(inst, depth, k, np.eye(4), balls, margin, band) == 0
-    with pytest.raises(ValueError, match="border_fill_px"):
-        panoptic_fusion.Config(border_fill_px=-1)
+        assert panoptic_fusion.border_surfaces(inst, depth, k, np.eye(4), balls, margin, band) == 0
+    with pytest.raises(ValueError, match="border_band_px"):
+        panoptic_fusion.Config(border_band_px=-1)
 
 
 def test_the_detector_shows_a_fused_fruit_as_two_when_two_lasting_clusters_share_a_frame():
@@ -600,7 +610,7 @@ def test_a_frame_the_nearest_window_rendered_without_its_fruits_takes_them_from_
         return sem, slots
 
     # the fruit pixels the windows rendered, nothing added
-    render_only = ("panoptic_fusion.detector_fill=false", "panoptic_fusion.border_fill_px=0")
+    render_only = ("panoptic_fusion.detector_fill=false", "panoptic_fusion.border_band_px=0")
     whole = make_row(name="whole")
     whole.runner(*render_only).run(["panoptic_fusion"], force=True)
     row = make_row(hook=lose_fruits)
