@@ -120,10 +120,10 @@ class Config:
     not used. Off = the fused fruits have the render's pixels only."""
     border_band_px: int = 8
     """reference pixels (as in a 320x180 image, scaled with the image's size), >= 0; 0 = off. In a band this
-    wide along the image's left and right edges, a pixel whose ray crosses a fruit's sphere and whose 3D point
-    (placed with surface_depth) lies within track_margin_m of where the ray enters that sphere (its front
-    surface) goes to that fruit, unless the fruit it carries has its front surface there too. A fruit entering
-    or leaving the view shows a sliver at the image's side edge; the detector misses or drops most cut-off
+    wide along the image's edges, a pixel whose ray crosses a fruit's sphere and whose 3D point (placed with
+    surface_depth) lies within track_margin_m of where the ray enters that sphere (its front surface) goes to
+    that fruit, unless the fruit it carries has its front surface there too. A fruit entering or leaving the
+    view (or cut off by the image's edge) shows a sliver at the edge; the detector misses or drops most cut-off
     fruits, so the render learns to paint that sliver as leaf or with the neighbour's slot, while the fruit's
     sphere, measured in the frames that see it whole, still places it. A leaf beside the fruit (its ray misses
     the sphere), in front of it or behind it is not taken, so a wider band mostly costs time. Needs spheres
@@ -434,10 +434,10 @@ def relabel_by_surface(inst: np.ndarray, depth: np.ndarray, k: np.ndarray, c2w: 
 
 def border_surfaces(inst: np.ndarray, depth: np.ndarray, k: np.ndarray, c2w: np.ndarray,
                     spheres: dict[int, tuple[np.ndarray, float]], margin_m: float, band_px: int) -> int:
-    """Within `band_px` columns of the left or right edge of a fused frame (`inst` [H, W] fruit ids, changed in
-    place), give each pixel whose ray crosses a sphere of `spheres` and whose point (z-depth `depth` in m,
-    intrinsics k = (fx, fy, cx, cy), pose c2w) lies within margin_m of where the ray enters that sphere (its
-    front surface) to that sphere's fruit, unless the pixel's own fruit's front surface holds it too. Where
+    """Within `band_px` pixels of the edges of a fused frame (`inst` [H, W] fruit ids, changed in place), give
+    each pixel whose ray crosses a sphere of `spheres` and whose point (z-depth `depth` in m, intrinsics k =
+    (fx, fy, cx, cy), pose c2w) lies within margin_m of where the ray enters that sphere (its front surface) to
+    that sphere's fruit, unless the pixel's own fruit's front surface holds it too. Where
     several front surfaces hold a point, the sphere whose centre is nearest relative to its radius wins. A leaf
     beside a fruit (its ray misses the sphere), in front of it or behind it is not taken. Returns the pixels
     given a fruit or moved to another."""
@@ -445,16 +445,19 @@ def border_surfaces(inst: np.ndarray, depth: np.ndarray, k: np.ndarray, c2w: np.
     band_px = min(band_px, w // 2)
     if margin_m <= 0 or band_px <= 0 or not spheres:
         return 0
-    cols = np.r_[0:band_px, w - band_px:w]
-    v, j = np.nonzero(depth[:, cols] > 0)
+    bh = min(band_px, h // 2)
+    edge = np.zeros((h, w), bool)
+    edge[:, :band_px] = edge[:, w - band_px:] = True
+    edge[:bh] = edge[h - bh:] = True
+    v, u = np.nonzero(edge & (depth > 0))
     if not len(v):
         return 0
-    u = cols[j]
     ids = np.array(sorted(spheres))
     centres = np.stack([spheres[int(i)][0] for i in ids])
     radii = np.array([spheres[int(i)][1] for i in ids])
     boxes = sphere_boxes(inst.shape, k, c2w, centres, radii)
-    near = np.array([b is None or (b[0] < b[1] and b[2] < b[3] and (b[2] < band_px or b[3] > w - band_px))
+    near = np.array([b is None or (b[0] < b[1] and b[2] < b[3]      # boxes reaching into the band
+                                   and (b[0] < bh or b[1] > h - bh or b[2] < band_px or b[3] > w - band_px))
                      for b in boxes])
     if not near.any():
         return 0

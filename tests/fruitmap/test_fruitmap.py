@@ -344,21 +344,27 @@ def test_a_fruit_takes_the_pixels_of_its_detector_segment_that_lie_on_its_sphere
     assert (inst[left] == 0).all()
 
 
-def test_a_fruit_cut_off_by_the_side_edge_takes_its_sliver_there_from_its_sphere():
+def test_a_fruit_cut_off_by_the_image_edge_takes_its_sliver_there_from_its_sphere():
     k = np.array([100.0, 100.0, 40.0, 30.0])
     a, b = (np.array([-0.2, 0.0, 0.5]), 0.03), (np.array([0.0, 0.0, 0.5]), 0.03)  # a: cut off by the left edge
-    depth, who = sphere_depth(k, (60, 80), [a, b], background_m=2.0)
-    truth = np.where(who == 0, 1, np.where(who == 1, 2, 0)).astype(np.uint16)
-    cols = np.arange(80)[None]
+    c = (np.array([0.1, -0.15, 0.5]), 0.03)                                        # c: cut off by the top edge
+    depth, who = sphere_depth(k, (60, 80), [a, b, c], background_m=2.0)
+    truth = np.where(who == 0, 1, np.where(who == 1, 2, np.where(who == 2, 5, 0))).astype(np.uint16)
+    cols, rows = np.arange(80)[None], np.arange(60)[:, None]
     sliver, inner = (who == 0) & (cols < 4), (who == 1) & (cols < 38)     # painted as leaf by the render
-    assert sliver.sum() > 10 and inner.sum() > 10
+    top = (who == 2) & (rows < 4)
+    assert sliver.sum() > 10 and inner.sum() > 10 and top.sum() > 10
     inst = truth.copy()
-    inst[sliver | inner] = 0
-    spheres = {1: a, 2: b, 3: (np.array([2.0, 0.0, 0.5]), 0.03)}            # fruit 3 is out of view
+    inst[sliver | inner | top] = 0
+    spheres = {1: a, 2: b, 3: (np.array([2.0, 0.0, 0.5]), 0.03), 5: c}     # fruit 3 is out of view
+    # only the band along the edges is given: fruit 2's pixels in the middle keep the render's label
+    assert panoptic_fusion.border_surfaces(inst, depth, k, np.eye(4), spheres, 0.01, 4) == sliver.sum() + top.sum()
+    assert (inst[sliver] == 1).all() and (inst[top] == 5).all() and (inst[inner] == 0).all()
+    assert (inst[who == -1] == 0).all()
+    inst[top] = 0
+    del spheres[5]
     before = inst.copy()
-    # only the band along the side edges is given: fruit 2's pixels in the middle keep the render's label
-    assert panoptic_fusion.border_surfaces(inst, depth, k, np.eye(4), spheres, 0.01, 4) == sliver.sum()
-    assert (inst[sliver] == 1).all() and (inst[inner] == 0).all() and (inst[who == -1] == 0).all()
+    before[sliver] = 0
     assert panoptic_fusion.border_surfaces(inst, depth, k, np.eye(4), spheres, 0.01, 4) == 0   # nothing to do
     # the sliver painted with the neighbour's slot goes back to the fruit whose front surface holds it
     inst[sliver] = 2
