@@ -446,12 +446,6 @@ def border_surfaces(inst: np.ndarray, depth: np.ndarray, k: np.ndarray, c2w: np.
     if margin_m <= 0 or band_px <= 0 or not spheres:
         return 0
     bh = min(band_px, h // 2)
-    edge = np.zeros((h, w), bool)
-    edge[:, :band_px] = edge[:, w - band_px:] = True
-    edge[:bh] = edge[h - bh:] = True
-    v, u = np.nonzero(edge & (depth > 0))
-    if not len(v):
-        return 0
     ids = np.array(sorted(spheres))
     centres = np.stack([spheres[int(i)][0] for i in ids])
     radii = np.array([spheres[int(i)][1] for i in ids])
@@ -462,6 +456,19 @@ def border_surfaces(inst: np.ndarray, depth: np.ndarray, k: np.ndarray, c2w: np.
     if not near.any():
         return 0
     ids, centres, radii = ids[near], centres[near], radii[near]
+    # only pixels in a sphere's box can see its front surface: the band's pixels inside the near boxes
+    edge = np.zeros((h, w), bool)
+    edge[:, :band_px] = edge[:, w - band_px:] = True
+    edge[:bh] = edge[h - bh:] = True
+    boxes = [b for b, keep in zip(boxes, near) if keep]
+    if all(b is not None for b in boxes):
+        inside = np.zeros((h, w), bool)
+        for v0, v1, u0, u1 in boxes:
+            inside[v0:v1, u0:u1] = True
+        edge &= inside
+    v, u = np.nonzero(edge & (depth > 0))
+    if not len(v):
+        return 0
     column = np.full(max(int(inst.max()), int(ids.max())) + 1, -1)   # fruit id -> its sphere here (-1: none)
     column[ids] = np.arange(len(ids))
     p = unproject(depth, k, c2w, v, u)
