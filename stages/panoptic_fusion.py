@@ -393,6 +393,12 @@ def fruit_spheres(groups: list[list[int]], local: list[LocalFruit], slot_views: 
     return out
 
 
+def sphere_arrays(spheres: dict[int, tuple[np.ndarray, float]]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(fruit ids [S] sorted, centres [S, 3], radii [S]) of {fruit id: (centre, radius)}, for the surface rules."""
+    ids = np.array(sorted(spheres))
+    return ids, np.stack([spheres[int(i)][0] for i in ids]), np.array([spheres[int(i)][1] for i in ids])
+
+
 def relabel_by_surface(inst: np.ndarray, depth: np.ndarray, k: np.ndarray, c2w: np.ndarray,
                        spheres: dict[int, tuple[np.ndarray, float]], margin_m: float) -> int:
     """Give each fruit pixel of a fused frame (`inst` [H, W] fruit ids, changed in place; z-depth in m that
@@ -404,9 +410,7 @@ def relabel_by_surface(inst: np.ndarray, depth: np.ndarray, k: np.ndarray, c2w: 
     pixels moved."""
     if margin_m <= 0 or not spheres:
         return 0
-    ids = np.array(sorted(spheres))
-    centres = np.stack([spheres[int(i)][0] for i in ids])
-    radii = np.array([spheres[int(i)][1] for i in ids])
+    ids, centres, radii = sphere_arrays(spheres)
     # only the spheres whose image box is in the frame can hold a pixel's point (sphere_boxes)
     boxes = sphere_boxes(inst.shape, k, c2w, centres, radii + margin_m)
     seen = np.array([b is None or (b[0] < b[1] and b[2] < b[3]) for b in boxes])
@@ -446,9 +450,7 @@ def border_surfaces(inst: np.ndarray, depth: np.ndarray, k: np.ndarray, c2w: np.
     if margin_m <= 0 or band_px <= 0 or not spheres:
         return 0
     bh = min(band_px, h // 2)
-    ids = np.array(sorted(spheres))
-    centres = np.stack([spheres[int(i)][0] for i in ids])
-    radii = np.array([spheres[int(i)][1] for i in ids])
+    ids, centres, radii = sphere_arrays(spheres)
     boxes = sphere_boxes(inst.shape, k, c2w, centres, radii)
     near = np.array([b is None or (b[0] < b[1] and b[2] < b[3]      # boxes reaching into the band
                                    and (b[0] < bh or b[1] > h - bh or b[2] < band_px or b[3] > w - band_px))
@@ -510,9 +512,7 @@ def fill_from_detector(inst: np.ndarray, segments: np.ndarray, depth: np.ndarray
     for f, s in pairs[order].tolist():
         seg_of.setdefault(f, s)
         fruit_of.setdefault(s, f)
-    ids = np.array(sorted(spheres))
-    centres = np.stack([spheres[int(i)][0] for i in ids])
-    radii = np.array([spheres[int(i)][1] for i in ids])
+    ids, centres, radii = sphere_arrays(spheres)
     # each segment feeds at most one fruit, so the free pixels (no fruit, a segment, a depth) are found once
     free_v, free_u = np.nonzero((inst == 0) & (segments > 0) & (depth > 0))
     free_seg = segments[free_v, free_u]
