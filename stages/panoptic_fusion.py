@@ -10,6 +10,7 @@ import numpy as np
 import pandas as pd
 from scipy.cluster.hierarchy import fcluster, linkage
 from scipy.optimize import linear_sum_assignment
+from scipy.spatial import cKDTree
 
 import schemas
 from nerf.config import BASE_PIXELS
@@ -120,14 +121,16 @@ class Config:
     not used. Off = the fused fruits have the render's pixels only."""
     border_band_px: int = 8
     """reference pixels (as in a 320x180 image, scaled with the image's size), >= 0; 0 = off. In a band this
-    wide along the image's edges, a pixel whose ray crosses a fruit's sphere and whose 3D point (placed with
-    surface_depth) lies within track_margin_m of where the ray enters that sphere (its front surface) goes to
-    that fruit, unless the fruit it carries has its front surface there too. A fruit entering or leaving the
-    view (or cut off by the image's edge) shows a sliver at the edge; the detector misses or drops most cut-off
-    fruits, so the render learns to paint that sliver as leaf or with the neighbour's slot, while the fruit's
-    sphere, measured in the frames that see it whole, still places it. A leaf beside the fruit (its ray misses
-    the sphere), in front of it or behind it is not taken, so a wider band mostly costs time. Needs spheres
-    (track_margin_m > 0)."""
+    wide along the image's edges, a pixel whose 3D point (placed with surface_depth) lies within track_margin_m
+    of a fruit's seen surface goes to that fruit, unless the fruit it carries has its surface there too (the
+    nearest surface wins). A fruit's seen surface: the points its windows rendered of it over all frames that
+    lie inside its sphere (the sphere drops what a slot painted beyond the fruit; fruits without a plausible
+    sphere have none). A fruit entering or leaving the view (or cut off by the image's edge) shows a sliver at
+    the edge; the detector misses or drops most cut-off fruits, so the render learns to paint that sliver as
+    leaf or with the neighbour's slot, while the frames that see the fruit whole still place its surface. The
+    seen surface, not the sphere's front, because a sphere fitted to an elongated fruit is wider than the
+    fruit and passes centimetres in front of its sides, where the sliver is. A leaf beside the fruit, in front
+    of it or behind it is not taken, so a wider band mostly costs time. Needs spheres (track_margin_m > 0)."""
     detector_split_m: float = 0.03
     """metres, >= 0; 0 = off. A fused fruit that the detector shows as several fruits is split. In every fused
     frame each detector segment lying mostly on fused fruits is given to the fruit holding most of it (at least
@@ -375,21 +378,44 @@ def associate(fruits: list[LocalFruit], masks: dict[tuple[int, int], np.ndarray]
     return list(groups.values())
 
 
-def fruit_spheres(groups: list[list[int]], local: list[LocalFruit], slot_views: dict,
-                  max_radius_m: float) -> dict[int, tuple[np.ndarray, float]]:
-    """{fruit id: (sphere centre [3], radius)} of the fused fruits (groups of local fruits carrying their fruit
-    id) whose seen surface (the points of all their windows' slot views) fits a plausible sphere
-    (nerf.surfaces.fruit_sphere)."""
+def fruit_points(groups: list[list[int]], local: list[LocalFruit], slot_views: dict) -> dict[int, np.ndarray]:
+    """{fruit id: seen surface points [N, 3]} of the fused fruits (groups of local fruits carrying their fruit
+    id): the points of all their windows' slot views."""
     out = {}
     for g in groups:
-        fruit_id = local[g[0]].fruit_id
         pts = [slot_views[(local[i].window_id, local[i].slot)][fg].points for i in g for fg in local[i].frames]
-        pts = np.concatenate(pts) if pts else np.zeros((0, 3))
+        out[local[g[0]].fruit_id] = np.concatenate(pts) if pts else np.zeros((0, 3))
+    return out
+
+
+def fruit_spheres(points: dict[int, np.ndarray], max_radius_m: float) -> dict[int, tuple[np.ndarray, float]]:
+    """{fruit id: (sphere centre [3], radius)} of the fruits whose seen surface `points` (fruit_points) fits a
+    plausible sphere (nerf.surfaces.fruit_sphere)."""
+    out = {}
+    for fruit_id, pts in points.items():
         if len(pts) < 20:
             continue
         fit = fruit_sphere(pts, max_radius_m)
         if fit is not None:
             out[fruit_id] = (fit[0], float(fit[1]))
+    return out
+
+
+def surface_clouds(points: dict[int, np.ndarray], spheres: dict[int, tuple[np.ndarray, float]],
+                   voxel_m: float) -> dict[int, cKDTree]:
+    """{fruit id: k-d tree of its seen surface} for the fruits with a sphere: their points (fruit_points) that
+    lie inside the sphere, one per voxel_m cube. The sphere drops what the windows' slots painted beyond the
+    fruit (a leaf behind its outline, a piece of a neighbour); the points keep the fruit's own shape, which a
+    sphere fitted to an elongated fruit does not (it is wider than the fruit, so its surface misses the fruit's
+    sides)."""
+    out = {}
+    for f, (c, r) in spheres.items():
+        pts = points.get(f, np.zeros((0, 3)))
+        pts = pts[np.linalg.norm(pts - c, axis=1) <= r]
+        if len(pts):
+            if voxel_m > 0:
+                pts = pts[np.unique(np.floor(pts / voxel_m).astype(np.int64), axis=0, return_index=True)[1]]
+            out[f] = cKDTree(pts)
     return out
 
 
@@ -437,28 +463,29 @@ def relabel_by_surface(inst: np.ndarray, depth: np.ndarray, k: np.ndarray, c2w: 
 
 
 def border_surfaces(inst: np.ndarray, depth: np.ndarray, k: np.ndarray, c2w: np.ndarray,
-                    spheres: dict[int, tuple[np.ndarray, float]], margin_m: float, band_px: int) -> int:
+                    spheres: dict[int, tuple[np.ndarray, float]], clouds: dict[int, cKDTree], margin_m: float,
+                    band_px: int) -> int:
     """Within `band_px` pixels of the edges of a fused frame (`inst` [H, W] fruit ids, changed in place), give
-    each pixel whose ray crosses a sphere of `spheres` and whose point (z-depth `depth` in m, intrinsics k =
-    (fx, fy, cx, cy), pose c2w) lies within margin_m of where the ray enters that sphere (its front surface) to
-    that sphere's fruit, unless the pixel's own fruit's front surface holds it too. Where
-    several front surfaces hold a point, the sphere whose centre is nearest relative to its radius wins. A leaf
-    beside a fruit (its ray misses the sphere), in front of it or behind it is not taken. Returns the pixels
-    given a fruit or moved to another."""
+    each pixel whose point (z-depth `depth` in m, intrinsics k = (fx, fy, cx, cy), pose c2w) lies within
+    margin_m of a fruit's seen surface (`clouds`, surface_clouds) to that fruit, unless the pixel's own fruit's
+    surface holds it too. Where several fruits' surfaces hold a point, the nearest wins. Only pixels inside
+    the image box of a fruit's sphere (`spheres`) are tested. A leaf beside a fruit, in front of it or behind
+    it is not taken. Returns the pixels given a fruit or moved to another."""
     h, w = inst.shape
     band_px = min(band_px, w // 2)
+    spheres = {f: b for f, b in spheres.items() if f in clouds}
     if margin_m <= 0 or band_px <= 0 or not spheres:
         return 0
     bh = min(band_px, h // 2)
     ids, centres, radii = sphere_arrays(spheres)
-    boxes = sphere_boxes(inst.shape, k, c2w, centres, radii)
+    boxes = sphere_boxes(inst.shape, k, c2w, centres, radii + margin_m)
     near = np.array([b is None or (b[0] < b[1] and b[2] < b[3]      # boxes reaching into the band
                                    and (b[0] < bh or b[1] > h - bh or b[2] < band_px or b[3] > w - band_px))
                      for b in boxes])
     if not near.any():
         return 0
-    ids, centres, radii = ids[near], centres[near], radii[near]
-    # only pixels in a sphere's box can see its front surface: the band's pixels inside the near boxes
+    ids = ids[near]
+    # only pixels in a sphere's box can see its surface: the band's pixels inside the near boxes
     edge = np.zeros((h, w), bool)
     edge[:, :band_px] = edge[:, w - band_px:] = True
     edge[:bh] = edge[h - bh:] = True
@@ -471,22 +498,19 @@ def border_surfaces(inst: np.ndarray, depth: np.ndarray, k: np.ndarray, c2w: np.
     v, u = np.nonzero(edge & (depth > 0))
     if not len(v):
         return 0
-    column = np.full(max(int(inst.max()), int(ids.max())) + 1, -1)   # fruit id -> its sphere here (-1: none)
+    column = np.full(max(int(inst.max()), int(ids.max())) + 1, -1)   # fruit id -> its column here (-1: none)
     column[ids] = np.arange(len(ids))
     p = unproject(depth, k, c2w, v, u)
-    ray = p - c2w[:3, 3]
-    dist = np.linalg.norm(ray, axis=1)
-    to_centre = centres - c2w[:3, 3]                                    # [S, 3]
-    foot = (ray / dist[:, None]) @ to_centre.T                         # [P, S] the centre's foot on each ray
-    miss2 = (to_centre ** 2).sum(1)[None] - foot ** 2                  # squared distance of ray and centre
-    enter = foot - np.sqrt(np.maximum(radii[None] ** 2 - miss2, 0.0))   # where the ray enters the sphere
-    on = (miss2 <= radii[None] ** 2) & (np.abs(dist[:, None] - enter) <= margin_m)
-    rel = np.where(on, np.sqrt(np.maximum(miss2, 0.0) + (dist[:, None] - foot) ** 2) / radii[None], np.inf)
+    gap = np.full((len(p), len(ids)), np.inf)                          # [P, S] distance to each fruit's surface
+    for j, (f, b) in enumerate(zip(ids.tolist(), boxes)):
+        mine = np.ones(len(v), bool) if b is None else (v >= b[0]) & (v < b[1]) & (u >= b[2]) & (u < b[3])
+        if mine.any():
+            gap[mine, j] = clouds[f].query(p[mine], distance_upper_bound=margin_m)[0]
     rows = np.arange(len(p))
-    best = rel.argmin(1)
+    best = gap.argmin(1)
     own = column[inst[v, u]]
-    on_own = (own >= 0) & on[rows, np.maximum(own, 0)]
-    ok = np.isfinite(rel[rows, best]) & ~on_own & (best != own)
+    on_own = (own >= 0) & np.isfinite(gap[rows, np.maximum(own, 0)])
+    ok = np.isfinite(gap[rows, best]) & ~on_own & (best != own)
     inst[v[ok], u[ok]] = ids[best[ok]]
     return int(ok.sum())
 
@@ -538,8 +562,8 @@ def fill_from_detector(inst: np.ndarray, segments: np.ndarray, depth: np.ndarray
 
 
 def surface_rules(inst: np.ndarray, segments: np.ndarray | None, depth: np.ndarray, k: np.ndarray,
-                  c2w: np.ndarray, spheres: dict[int, tuple[np.ndarray, float]], cfg: Config,
-                  ctx: StageContext) -> None:
+                  c2w: np.ndarray, spheres: dict[int, tuple[np.ndarray, float]], clouds: dict[int, cKDTree],
+                  cfg: Config, ctx: StageContext) -> None:
     """track_margin_m (relabel_by_surface), detector_fill (fill_from_detector, where the frame has detector
     segments) and border_band_px (border_surfaces) on one fused frame (`inst` changed in place), their pixels
     counted in the summary."""
@@ -552,7 +576,7 @@ def surface_rules(inst: np.ndarray, segments: np.ndarray | None, depth: np.ndarr
             ctx.count("pixels_filled_from_detector", filled)
     if cfg.border_band_px:
         band = int(np.ceil(cfg.border_band_px * np.sqrt(max(1.0, inst.size / BASE_PIXELS)) - 1e-9))
-        moved = border_surfaces(inst, depth, k, c2w, spheres, cfg.track_margin_m, band)
+        moved = border_surfaces(inst, depth, k, c2w, spheres, clouds, cfg.track_margin_m, band)
         if moved:
             ctx.count("pixels_given_at_the_border", moved)
 
@@ -709,9 +733,9 @@ def compose(labelled: list[tuple[np.ndarray, np.ndarray, np.ndarray]], wins: lis
 
 
 def split_fruits(seg_views: dict, in_frame: dict[int, set[int]], depth_file: dict[int, Path],
-                 cams: dict[int, np.ndarray], rows: list[dict], spheres: dict, fruit_centres: dict[int, np.ndarray],
-                 fruit_class: np.ndarray, frames: pd.DataFrame, dropped: dict, out_dir: Path, cfg: Config,
-                 ctx: StageContext) -> int:
+                 cams: dict[int, np.ndarray], rows: list[dict], spheres: dict, clouds: dict[int, cKDTree],
+                 fruit_centres: dict[int, np.ndarray], fruit_class: np.ndarray, frames: pd.DataFrame, dropped: dict,
+                 out_dir: Path, cfg: Config, ctx: StageContext) -> int:
     """detector_split_m: rewrite the fused frames (PNGs in `out_dir`; per frame its depth PNG `depth_file` and
     pose `cams`) of the fruits the detector shows as several (detector_clusters on `seg_views`: per fruit its
     (frame, segment, pixels, centre, points)); `rows` (panoptic_frames rows) get their fruit counts updated.
@@ -719,12 +743,14 @@ def split_fruits(seg_views: dict, in_frame: dict[int, set[int]], depth_file: dic
     association's) lies within max_match_distance_m of its own (its sphere's centre where the fit is
     plausible) or inside its sphere (radius + track_margin_m), or whose sphere holds its centre; else it is a
     new fruit. Where every cluster has a plausible sphere, the fruit, new fruits and joined fruits without a
-    sphere take their cluster's, and relabel_by_surface and detector_fill run again with them. `dropped`: the
-    segments the depth filter dropped, per frame. Returns the number of fruits of the row."""
+    sphere take their cluster's (and its segments' points inside it as their surface, `clouds`), and the
+    surface rules run again with them. `dropped`: the segments the depth filter dropped, per frame. Returns the
+    number of fruits of the row."""
     plans = {}
     classes = list(fruit_class)
     n_fruits = len(fruit_class) - 1
     sphere_of = dict(spheres)
+    cloud_of = dict(clouds)
     known = sorted(fruit_centres)
     known_xyz = np.stack([fruit_centres[g] for g in known]) if known else np.zeros((0, 3))
     for f, views in sorted(seg_views.items()):
@@ -755,6 +781,9 @@ def split_fruits(seg_views: dict, in_frame: dict[int, set[int]], depth_file: dic
             for j, (g, ball) in enumerate(zip(ids, balls)):
                 if j == 0 or g not in spheres:   # a sphere for this fruit, new fruits and hosts without one
                     sphere_of[g] = ball
+                    seen = np.concatenate([v[4] for v, lab in zip(views, labels) if lab == j])
+                    cloud_of.pop(g, None)
+                    cloud_of.update(surface_clouds({g: seen}, {g: ball}, cfg.track_margin_m / 2))
         else:  # the nearest seen-surface centre
             balls = [(c, 1.0) for c in centres]
         plans[f] = (ids, balls, seg_cluster)
@@ -784,7 +813,7 @@ def split_fruits(seg_views: dict, in_frame: dict[int, set[int]], depth_file: dic
                                       cfg.min_group_px)
             ctx.count("pixels_moved_by_detector_split", moved)
         if sphere_of:   # with the clusters' spheres: pieces without a sphere of their own join them
-            surface_rules(inst, segments, depth, k, c2w, sphere_of, cfg, ctx)
+            surface_rules(inst, segments, depth, k, c2w, sphere_of, cloud_of, cfg, ctx)
         m = inst != before
         sem[m] = fruit_class[inst[m]]
         write_png(out_dir / "semantic" / name, sem)
@@ -895,7 +924,13 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
         for i in g:
             px[local[i].class_id] += local[i].n_px
         fruit_class[local[g[0]].fruit_id] = max(px, key=px.get)
-    spheres = fruit_spheres(groups, local, slot_views, cfg.max_fruit_radius_m) if cfg.track_margin_m > 0 else {}
+    spheres, clouds = {}, {}
+    if cfg.track_margin_m > 0:
+        points = fruit_points(groups, local, slot_views)
+        spheres = fruit_spheres(points, cfg.max_fruit_radius_m)
+        if cfg.border_band_px:
+            clouds = surface_clouds(points, spheres, cfg.track_margin_m / 2)
+        del points
     dropped = [lf for lf in local if lf.fruit_id == 0]
     ctx.count("slots", len(local))
     ctx.count("slots_dropped", len(dropped))
@@ -945,7 +980,7 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
             segments = fruit_segments(fr, ctx.data_root, dropped.get(fid))
         if spheres:
             before = out_inst.copy()
-            surface_rules(out_inst, segments, placed, k, r.c2w, spheres, cfg, ctx)
+            surface_rules(out_inst, segments, placed, k, r.c2w, spheres, clouds, cfg, ctx)
             m = out_inst != before
             out_sem[m] = fruit_class[out_inst[m]]
         if split and segments is not None:
@@ -970,8 +1005,8 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
     if seg_views:
         centres = {local[g[0]].fruit_id: (spheres[local[g[0]].fruit_id][0] if local[g[0]].fruit_id in spheres
                                           else gcentre[j]) for j, g in enumerate(groups)}
-        n_fruits = split_fruits(seg_views, in_frame, depth_file, cams, rows, spheres, centres, fruit_class, frames,
-                                dropped, out_dir, cfg, ctx)
+        n_fruits = split_fruits(seg_views, in_frame, depth_file, cams, rows, spheres, clouds, centres, fruit_class,
+                                frames, dropped, out_dir, cfg, ctx)
     else:
         n_fruits = len(groups)
     slots = pd.DataFrame([{

@@ -344,7 +344,15 @@ def test_a_fruit_takes_the_pixels_of_its_detector_segment_that_lie_on_its_sphere
     assert (inst[left] == 0).all()
 
 
-def test_a_fruit_cut_off_by_the_image_edge_takes_its_sliver_there_from_its_sphere():
+def front_cap(ball: tuple[np.ndarray, float], n: int = 6000, seed: int = 0) -> np.ndarray:
+    """Points on the part of a sphere that a camera at the origin sees: a fruit's seen surface."""
+    c, r = ball
+    d = np.random.default_rng(seed).normal(size=(n, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    return c + r * d[d @ c < -r]
+
+
+def test_a_fruit_cut_off_by_the_image_edge_takes_its_sliver_there_from_its_seen_surface():
     k = np.array([100.0, 100.0, 40.0, 30.0])
     a, b = (np.array([-0.2, 0.0, 0.5]), 0.03), (np.array([0.0, 0.0, 0.5]), 0.03)  # a: cut off by the left edge
     c = (np.array([0.1, -0.15, 0.5]), 0.03)                                        # c: cut off by the top edge
@@ -357,18 +365,26 @@ def test_a_fruit_cut_off_by_the_image_edge_takes_its_sliver_there_from_its_spher
     inst = truth.copy()
     inst[sliver | inner | top] = 0
     spheres = {1: a, 2: b, 3: (np.array([2.0, 0.0, 0.5]), 0.03), 5: c}     # fruit 3 is out of view
+    # the seen surface is what the windows saw inside the fruit's sphere: a leaf 2 cm behind fruit 1's outline
+    # that its slot painted stays out of it
+    leaf = a[0] + np.array([-a[1] - 0.005, 0.0, 0.02]) + np.random.default_rng(1).normal(0, 0.002, (50, 3))
+    seen = {f: front_cap(ball) for f, ball in spheres.items()}
+    seen[1] = np.concatenate([seen[1], leaf])
+    clouds = panoptic_fusion.surface_clouds(seen, spheres, 0.002)
+    assert set(clouds) == {1, 2, 3, 5} and (clouds[1].query(leaf)[0] > 0.01).all()
     # only the band along the edges is given: fruit 2's pixels in the middle keep the render's label
-    assert panoptic_fusion.border_surfaces(inst, depth, k, np.eye(4), spheres, 0.01, 4) == sliver.sum() + top.sum()
+    given = panoptic_fusion.border_surfaces(inst, depth, k, np.eye(4), spheres, clouds, 0.01, 4)
+    assert given == sliver.sum() + top.sum()
     assert (inst[sliver] == 1).all() and (inst[top] == 5).all() and (inst[inner] == 0).all()
     assert (inst[who == -1] == 0).all()
     inst[top] = 0
     del spheres[5]
     before = inst.copy()
     before[sliver] = 0
-    assert panoptic_fusion.border_surfaces(inst, depth, k, np.eye(4), spheres, 0.01, 4) == 0   # nothing to do
-    # the sliver painted with the neighbour's slot goes back to the fruit whose front surface holds it
+    assert panoptic_fusion.border_surfaces(inst, depth, k, np.eye(4), spheres, clouds, 0.01, 4) == 0   # done
+    # the sliver painted with the neighbour's slot goes back to the fruit whose surface holds it
     inst[sliver] = 2
-    assert panoptic_fusion.border_surfaces(inst, depth, k, np.eye(4), spheres, 0.01, 4) == sliver.sum()
+    assert panoptic_fusion.border_surfaces(inst, depth, k, np.eye(4), spheres, clouds, 0.01, 4) == sliver.sum()
     assert (inst[sliver] == 1).all()
     # a leaf 2 cm in front of the fruit, and one 1.5 cm beyond its outline behind it, are not taken
     v, u = np.mgrid[0:60, 0:80]
@@ -380,22 +396,32 @@ def test_a_fruit_cut_off_by_the_image_edge_takes_its_sliver_there_from_its_spher
     assert behind.sum() > 3
     leaves = np.where(sliver, depth - 0.02, np.where(behind, (along + 0.015) * unit[..., 2], depth))
     inst = before.copy()
-    assert panoptic_fusion.border_surfaces(inst, leaves, k, np.eye(4), spheres, 0.01, 4) == 0
-    # where the point lies on two spheres' front surfaces, the one it lies deepest in takes it (fruit 4's, 2 mm
-    # wider around the same centre), but a pixel stays with its own fruit where that fruit's front surface holds it
-    wide = {1: a, 4: (a[0], a[1] + 0.002)}
-    assert panoptic_fusion.border_surfaces(inst, depth, k, np.eye(4), wide, 0.01, 4) == sliver.sum()
-    assert (inst[sliver] == 4).all()
-    inst[sliver] = 1
-    assert panoptic_fusion.border_surfaces(inst, depth, k, np.eye(4), wide, 0.01, 4) == 0
-    # a fruit without a sphere gives the pixels on another's front surface to it
-    inst[sliver] = 4
-    assert panoptic_fusion.border_surfaces(inst, depth, k, np.eye(4), {1: a}, 0.01, 4) == sliver.sum()
+    assert panoptic_fusion.border_surfaces(inst, leaves, k, np.eye(4), spheres, clouds, 0.01, 4) == 0
+    # where two fruits' surfaces hold a point, the nearer takes it (fruit 4's surface lies 5 mm outside fruit
+    # 1's, around the same centre), but a pixel stays with its own fruit where that fruit's surface holds it
+    two = {1: a, 4: (a[0], a[1] + 0.005)}
+    two_clouds = {1: clouds[1], 4: panoptic_fusion.surface_clouds({4: front_cap(two[4])}, two, 0.002)[4]}
+    assert panoptic_fusion.border_surfaces(inst, depth, k, np.eye(4), two, two_clouds, 0.01, 4) == sliver.sum()
     assert (inst[sliver] == 1).all()
-    # no band, no margin or no sphere: nothing
+    inst[sliver] = 4
+    assert panoptic_fusion.border_surfaces(inst, depth, k, np.eye(4), two, two_clouds, 0.01, 4) == 0
+    # a sphere wider than the fruit (fitted to an elongated fruit: here 2 cm wider, its centre 1 cm deeper)
+    # passes well in front of the fruit's sides, where the sliver is, so no point of the sliver lies on its
+    # front surface; the fruit's seen surface still holds the sliver
+    wide = {1: (a[0] + np.array([0.0, 0.0, 0.01]), a[1] + 0.02)}
+    wide_clouds = panoptic_fusion.surface_clouds({1: front_cap(a)}, wide, 0.002)
+    inst = before.copy()
+    assert panoptic_fusion.border_surfaces(inst, depth, k, np.eye(4), wide, wide_clouds, 0.01, 4) == sliver.sum()
+    assert (inst[sliver] == 1).all()
+    inst[sliver] = 4
+    # a fruit without a seen surface gives the pixels on another's surface to it
+    assert panoptic_fusion.border_surfaces(inst, depth, k, np.eye(4), two, {1: clouds[1]}, 0.01, 4) == sliver.sum()
+    assert (inst[sliver] == 1).all()
+    # no band, no margin or no surfaces: nothing
     for band, margin, balls in ((0, 0.01, spheres), (4, 0.0, spheres), (4, 0.01, {})):
         inst = before.copy()
-        assert panoptic_fusion.border_surfaces(inst, depth, k, np.eye(4), balls, margin, band) == 0
+        assert panoptic_fusion.border_surfaces(inst, depth, k, np.eye(4), balls, clouds, margin, band) == 0
+        assert panoptic_fusion.border_surfaces(inst, depth, k, np.eye(4), spheres, {}, margin, band) == 0
     with pytest.raises(ValueError, match="border_band_px"):
         panoptic_fusion.Config(border_band_px=-1)
 
@@ -498,7 +524,7 @@ def test_split_fruits_rewrites_the_fused_frames_of_a_fruit_painted_over_two(tmp_
         ctx = StageContext(stage="panoptic_fusion", seq=SEQ, data_root=tmp_path, show_progress=False)
         n = panoptic_fusion.split_fruits(seg_views, {f: {4} for f in range(3)},
                                          {f: tmp_path / "depth" / f"{f:06d}.png" for f in range(3)},
-                                         {f: np.eye(4) for f in range(3)}, rows, {}, fruit_centres,
+                                         {f: np.eye(4) for f in range(3)}, rows, {}, {}, fruit_centres,
                                          np.full(n_ids + 1, cls, np.uint8), frames, {}, out_dir, cfg, ctx)
         return n, [read_label(out_dir / "instance" / f"{f:06d}.png", "x") for f in range(3)], ctx.summary
 
