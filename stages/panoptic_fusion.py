@@ -419,6 +419,13 @@ def surface_clouds(points: dict[int, np.ndarray], spheres: dict[int, tuple[np.nd
     return out
 
 
+def seen_surfaces(points: dict[int, np.ndarray], spheres: dict[int, tuple[np.ndarray, float]],
+                  cfg: Config) -> dict[int, cKDTree]:
+    """surface_clouds for border_band_px ({} when it is off), one point per cube of half track_margin_m: the
+    nearest kept point then lies within the margin of where a dropped one was."""
+    return surface_clouds(points, spheres, cfg.track_margin_m / 2) if cfg.border_band_px else {}
+
+
 def sphere_arrays(spheres: dict[int, tuple[np.ndarray, float]]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(fruit ids [S] sorted, centres [S, 3], radii [S]) of {fruit id: (centre, radius)}, for the surface rules."""
     ids = np.array(sorted(spheres))
@@ -783,7 +790,7 @@ def split_fruits(seg_views: dict, in_frame: dict[int, set[int]], depth_file: dic
                     sphere_of[g] = ball
                     seen = np.concatenate([v[4] for v, lab in zip(views, labels) if lab == j])
                     cloud_of.pop(g, None)
-                    cloud_of.update(surface_clouds({g: seen}, {g: ball}, cfg.track_margin_m / 2))
+                    cloud_of.update(seen_surfaces({g: seen}, {g: ball}, cfg))
         else:  # the nearest seen-surface centre
             balls = [(c, 1.0) for c in centres]
         plans[f] = (ids, balls, seg_cluster)
@@ -928,8 +935,7 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
     if cfg.track_margin_m > 0:
         points = fruit_points(groups, local, slot_views)
         spheres = fruit_spheres(points, cfg.max_fruit_radius_m)
-        if cfg.border_band_px:
-            clouds = surface_clouds(points, spheres, cfg.track_margin_m / 2)
+        clouds = seen_surfaces(points, spheres, cfg)
         del points
     dropped = [lf for lf in local if lf.fruit_id == 0]
     ctx.count("slots", len(local))
