@@ -109,6 +109,18 @@ class Config:
     the view, and in the frames at a window's ends. There the rendered depth can put a fruit's pixels onto a
     neighbour's sphere, while the sensor measures the fruit's own surface. Use 'rendered' for a depth sensor
     whose error on fruits is larger than track_margin_m. The spheres are fitted to rendered points either way."""
+    off_sphere_factor: float = 1.25
+    """multiple of a fruit's sphere radius, 0 (off) or >= 1. In every fused frame, after track_margin_m, a pixel
+    of a fruit with a sphere whose 3D point (placed with surface_depth) lies farther from the sphere's centre
+    than this multiple of its radius plus track_margin_m is not that fruit: it becomes background (semantic
+    class 0, no fruit id), unless a detector segment lying mostly on that fruit covers it (the detector, an
+    independent witness on the fused frames, shows the fruit there). The render paints a fruit's silhouette
+    wider than the fruit, over the leaves and background behind it (the sensor measures them there), and
+    paints a fruit that enters or leaves the image in a recording's first or last frames with a neighbour's
+    id; the spheres fitted to elongated fruits are wider than the fruits, so the pixels cleared lie well
+    beyond the fruit. Lower it (towards 1) to clear more of the halo, raise it where fruits are far from round
+    or the spheres are poor (a fruit's own pixels beyond its sphere are lost). Needs spheres (track_margin_m >
+    0); with surface_depth 'rendered' the halo lies on the render's fruit surface and is not cleared."""
     detector_fill: bool = True
     """in every fused frame, give a fruit the pixels of its detector segment that the render left as stuff or
     void and whose 3D point (placed with surface_depth) lies within the fruit's sphere (radius +
@@ -170,6 +182,8 @@ class Config:
                              "min_split_frames >= 1")
         if not self.track_margin_m >= 0:
             raise ValueError(f"panoptic_fusion.track_margin_m must be >= 0, got {self.track_margin_m}")
+        if not (self.off_sphere_factor == 0 or self.off_sphere_factor >= 1):
+            raise ValueError(f"panoptic_fusion.off_sphere_factor must be 0 (off) or >= 1, got {self.off_sphere_factor}")
         if self.border_band_px < 0:
             raise ValueError(f"panoptic_fusion.border_band_px must be >= 0, got {self.border_band_px}")
         if not self.detector_split_m >= 0:
@@ -469,6 +483,48 @@ def relabel_by_surface(inst: np.ndarray, depth: np.ndarray, k: np.ndarray, c2w: 
     return int(move.sum())
 
 
+def segment_owners(inst: np.ndarray, segments: np.ndarray) -> np.ndarray:
+    """[max segment id + 1] the fruit of `inst` ([H, W] fruit ids) holding most of each detector segment's
+    (`segments` [H, W] ids, 0 = none) fruit pixels; 0 for segments on no fruit."""
+    owner = np.zeros(int(segments.max()) + 1, np.int64)
+    both = (inst > 0) & (segments > 0)
+    if both.any():
+        base = int(inst.max()) + 1
+        keys, n = np.unique(segments[both].astype(np.int64) * base + inst[both], return_counts=True)
+        seg, fruit = np.divmod(keys, base)
+        order = np.lexsort((-n, seg))                               # per segment, its largest fruit first
+        first = np.r_[True, np.diff(seg[order]) != 0]
+        owner[seg[order][first]] = fruit[order][first]
+    return owner
+
+
+def clear_off_sphere(inst: np.ndarray, segments: np.ndarray | None, depth: np.ndarray, k: np.ndarray,
+                     c2w: np.ndarray, spheres: dict[int, tuple[np.ndarray, float]], margin_m: float,
+                     factor: float) -> int:
+    """Clear each pixel of a fused frame (`inst` [H, W] fruit ids, changed in place) whose fruit has a sphere
+    and whose point (z-depth `depth` in m, intrinsics k = (fx, fy, cx, cy), pose c2w) lies farther than
+    factor x radius + margin_m from that sphere's centre, unless a detector segment (`segments` [H, W] ids,
+    0 = none; None = no detector output) whose fruit pixels are mostly this fruit's covers it. Fruits without
+    a sphere keep their pixels. Returns the pixels cleared."""
+    if factor <= 0 or not spheres:
+        return 0
+    ids, centres, radii = sphere_arrays(spheres)
+    column = np.full(max(int(inst.max()), int(ids.max())) + 1, -1)   # fruit id -> its sphere (-1: none)
+    column[ids] = np.arange(len(ids))
+    v, u = np.nonzero((inst > 0) & (depth > 0))
+    own = column[inst[v, u]]
+    v, u, own = v[own >= 0], u[own >= 0], own[own >= 0]
+    if not len(v):
+        return 0
+    p = unproject(depth, k, c2w, v, u)
+    off = np.linalg.norm(p - centres[own], axis=1) > radii[own] * factor + margin_m
+    if segments is not None and off.any():
+        sid = segments[v, u]
+        off &= ~((sid > 0) & (segment_owners(inst, segments)[sid] == inst[v, u]))
+    inst[v[off], u[off]] = 0
+    return int(off.sum())
+
+
 def border_surfaces(inst: np.ndarray, depth: np.ndarray, k: np.ndarray, c2w: np.ndarray,
                     spheres: dict[int, tuple[np.ndarray, float]], clouds: dict[int, cKDTree], margin_m: float,
                     band_px: int) -> int:
@@ -571,12 +627,16 @@ def fill_from_detector(inst: np.ndarray, segments: np.ndarray, depth: np.ndarray
 def surface_rules(inst: np.ndarray, segments: np.ndarray | None, depth: np.ndarray, k: np.ndarray,
                   c2w: np.ndarray, spheres: dict[int, tuple[np.ndarray, float]], clouds: dict[int, cKDTree],
                   cfg: Config, ctx: StageContext) -> None:
-    """track_margin_m (relabel_by_surface), detector_fill (fill_from_detector, where the frame has detector
-    segments) and border_band_px (border_surfaces) on one fused frame (`inst` changed in place), their pixels
-    counted in the summary."""
+    """track_margin_m (relabel_by_surface), off_sphere_factor (clear_off_sphere), detector_fill
+    (fill_from_detector, where the frame has detector segments) and border_band_px (border_surfaces) on one
+    fused frame (`inst` changed in place; cleared pixels get fruit id 0, which the callers map to background),
+    their pixels counted in the summary."""
     moved = relabel_by_surface(inst, depth, k, c2w, spheres, cfg.track_margin_m)
     if moved:
         ctx.count("pixels_moved_to_their_surface", moved)
+    cleared = clear_off_sphere(inst, segments, depth, k, c2w, spheres, cfg.track_margin_m, cfg.off_sphere_factor)
+    if cleared:
+        ctx.count("pixels_cleared_off_their_sphere", cleared)
     if cfg.detector_fill and segments is not None:
         filled = fill_from_detector(inst, segments, depth, k, c2w, spheres, cfg.track_margin_m)
         if filled:
@@ -925,7 +985,7 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
     for fruit_id, j in enumerate(order, start=1):
         for i in groups[j]:
             local[i].fruit_id = fruit_id
-    fruit_class = np.zeros(len(groups) + 1, np.uint8)   # fruit id -> class with the most pixels
+    fruit_class = np.zeros(len(groups) + 1, np.uint8)   # fruit id -> class with the most pixels (0 -> background)
     for g in groups:
         px = defaultdict(int)
         for i in g:
@@ -982,7 +1042,7 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
         if cfg.surface_depth == "sensor" and (spheres or split):
             placed = with_sensor_depth(depth, ctx.abspath(fr.depth_path), fr.depth_scale_m)
         segments = None
-        if (cfg.detector_fill and spheres) or split:
+        if ((cfg.detector_fill or cfg.off_sphere_factor) and spheres) or split:
             segments = fruit_segments(fr, ctx.data_root, dropped.get(fid))
         if spheres:
             before = out_inst.copy()

@@ -297,6 +297,49 @@ def test_fruit_pixels_on_another_fruits_surface_go_to_that_fruit():
         panoptic_fusion.Config(track_margin_m=-0.01)
 
 
+def test_fruit_pixels_far_off_their_fruits_sphere_are_cleared_unless_the_detector_shows_the_fruit_there():
+    k = np.array([100.0, 100.0, 40.0, 30.0])
+    a, b = (np.array([-0.05, 0.0, 0.5]), 0.03), (np.array([0.06, 0.0, 0.55]), 0.03)
+    depth, who = sphere_depth(k, (60, 80), [a, b], background_m=2.0)
+    truth = np.where(who == 0, 1, np.where(who == 1, 2, 0)).astype(np.uint16)
+    rows, cols = np.mgrid[0:60, 0:80]
+    # fruit 1's silhouette painted 3 px too wide: the sensor sees the background there
+    halo = (who == -1) & (cv2.dilate((who == 0).astype(np.uint8), np.ones((7, 7), np.uint8)) > 0)
+    piece = (who == 1) & (cols < 52)                 # a piece of fruit 2 painted with fruit 1's id
+    assert halo.sum() > 30 and piece.sum() > 20
+    inst = truth.copy()
+    inst[halo | piece] = 1
+    spheres = {1: a, 2: b}
+    cleared = panoptic_fusion.clear_off_sphere(inst, None, depth, k, np.eye(4), spheres, 0.01, 1.25)
+    assert cleared == halo.sum() + piece.sum()
+    assert (inst[halo | piece] == 0).all() and (inst[who == 0] == 1).all()
+    assert (inst[(who == 1) & ~piece] == 2).all()
+    # a detector segment lying mostly on fruit 1 keeps the pixels it covers; one lying mostly on fruit 2 does not
+    inst = truth.copy()
+    inst[halo] = 1
+    kept, lost = halo & (rows < 30), halo & (rows >= 36)
+    segments = np.zeros(inst.shape, np.int32)
+    segments[(who == 0) | kept] = 3
+    segments[(who == 1) | lost] = 4
+    assert kept.sum() > 10 and 0 < lost.sum() < (who == 1).sum()
+    cleared = panoptic_fusion.clear_off_sphere(inst, segments, depth, k, np.eye(4), spheres, 0.01, 1.25)
+    assert cleared == halo.sum() - kept.sum()
+    assert (inst[kept] == 1).all() and (inst[halo & ~kept] == 0).all() and (inst[who >= 0] == truth[who >= 0]).all()
+    # a fruit's own pixels lie on its sphere, also on one 2 cm wider with its centre 1 cm deeper (a sphere fitted
+    # to an elongated fruit), at a factor of 1
+    inst = truth.copy()
+    wide = {1: (a[0] + np.array([0.0, 0.0, 0.01]), a[1] + 0.02), 2: b}
+    assert panoptic_fusion.clear_off_sphere(inst, None, depth, k, np.eye(4), wide, 0.01, 1.0) == 0
+    inst[halo] = 1
+    # fruits without a sphere keep their pixels; 0 = off
+    assert panoptic_fusion.clear_off_sphere(inst, None, depth, k, np.eye(4), {2: b}, 0.01, 1.25) == 0
+    assert panoptic_fusion.clear_off_sphere(inst, None, depth, k, np.eye(4), spheres, 0.01, 0.0) == 0
+    assert (inst == np.where(halo, 1, truth)).all()
+    for bad in (0.5, -1.0):
+        with pytest.raises(ValueError, match="off_sphere_factor"):
+            panoptic_fusion.Config(off_sphere_factor=bad)
+
+
 def test_a_fruit_takes_the_pixels_of_its_detector_segment_that_lie_on_its_sphere():
     k = np.array([100.0, 100.0, 40.0, 30.0])
     a, b = (np.array([-0.05, 0.0, 0.5]), 0.03), (np.array([0.05, 0.0, 0.55]), 0.035)
