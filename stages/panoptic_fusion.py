@@ -78,12 +78,14 @@ class Config:
     (median where no plausible fit), 'median' = median of the seen surface points (biased towards the
     cameras that saw it, so windows that saw a fruit from opposite sides disagree by centimetres). Use
     'median' for crops whose fruits are far from round."""
-    max_fruit_radius_m: float = 0.06
+    max_fruit_radius_m: float = 0.07
     """metres, > 0: a sphere fit with a larger radius is not a fruit (a flat patch, or pieces of several fruits
     one slot painted) and the median is used; such a fruit gets no sphere for track_margin_m either, so it
-    takes no pixel from its neighbours and gives them those of its pixels that lie on their spheres. Set it
-    somewhat above the largest fruit radius of the crop (sweet pepper about 0.03-0.045 m; the same bound as
-    nerf_fit.panoptic.complete_max_radius_m)."""
+    takes no pixel from its neighbours and gives them those of its pixels that lie on their spheres. A sphere
+    fitted to the seen surface of an elongated fruit (a pepper longer than wide, seen from one side) is wider
+    than the fruit: its radius runs up to about 1.6 times the fruit's half-width. Set it about 1.5 times the
+    largest fruit radius of the crop (sweet pepper about 0.03-0.045 m). Too large lets a fit to pieces of two
+    touching fruits pass as one fruit's sphere (its pixels then go to it)."""
     align_windows: bool = True
     """bring every window into one row frame before fusing: each window refines its poses on its own, so two
     windows place one fruit where their own stretch of odometry put it, centimetres apart over a row with
