@@ -493,6 +493,17 @@ def test_the_detector_shows_a_fused_fruit_as_two_when_two_lasting_clusters_share
     labels, centres = panoptic_fusion.detector_clusters(once, 0.03, 2)
     assert centres == [] and (labels == -1).all()
     assert len(panoptic_fusion.detector_clusters(once, 0.03, 1)[1]) == 3
+    # ... but it is where the second cluster lies off the fused fruit's sphere (3D evidence for a fruit seen once
+    # at the row's end); a cluster on the sphere still needs min_frames shared frames
+    ball = (x + np.array([0.0, 0.0, 0.03]), 0.045)
+    off = lambda c: float(np.linalg.norm(c - ball[0])) > ball[1] + 0.01   # noqa: E731
+    assert off(y) and not off(x) and not off((x + y) / 2)
+    labels, centres = panoptic_fusion.detector_clusters(once, 0.03, 2, off)
+    assert list(labels) == [0] * 6 + [1, -1] and np.linalg.norm(centres[1] - y) < 0.01
+    near = [view(f, 1, 500, x, f) for f in range(6)] + [view(3, 2, 100, x + [0.035, 0, 0], 22)]
+    assert not off(x + [0.035, 0, 0]) and panoptic_fusion.detector_clusters(near, 0.03, 2, off)[1] == []
+    assert len(panoptic_fusion.detector_clusters(near, 0.03, 2, lambda c: True)[1]) == 2   # no sphere: off
+    assert panoptic_fusion.detector_clusters(apart, 0.03, 2, lambda c: True)[1] == []      # never together
     assert panoptic_fusion.detector_clusters(views, 0.0, 2)[1] == []
     with pytest.raises(ValueError, match="detector_split_m"):
         panoptic_fusion.Config(detector_split_m=-0.01)
