@@ -155,8 +155,10 @@ class Config:
     fruits: the NeRF painted two touching fruits with one slot for their whole visible stretch, most often at
     the row's ends where one window alone sees them. Two clusters seen together in fewer frames (one frame
     will do) are two fruits too where the smaller one's centre lies outside the fused fruit's sphere (radius +
-    track_margin_m), or the fused fruit has no plausible sphere: a fruit the recording's first or last frames
-    show once or twice, painted with its neighbour's id. The cluster with the most pixels keeps the fruit's id;
+    track_margin_m), or the fused fruit has no plausible sphere; and a cluster whose centre lies outside the
+    sphere is a fruit beside the largest cluster even where the two never share a frame: a fruit the
+    recording's first or last frames show once or twice, painted with its neighbour's id (the detector may
+    miss the neighbour in those frames). The cluster with the most pixels keeps the fruit's id;
     another joins an existing fruit at its place (centres within max_match_distance_m, or one inside the
     other's sphere) or becomes a new fruit (ids after those of the row). In each frame a cluster's segments
     go to it and the fruit's other pixels to the cluster whose sphere they lie deepest in (track_margin_m and
@@ -684,15 +686,19 @@ def segment_centres(inst: np.ndarray, segments: np.ndarray, depth: np.ndarray, k
 
 
 def detector_clusters(views: list[tuple], link_m: float, min_frames: int,
-                      off_fruit: Callable[[np.ndarray], bool] | None = None) -> tuple[np.ndarray, list[np.ndarray]]:
+                      off_fruit: Callable[[np.ndarray], bool | None] | None = None
+                      ) -> tuple[np.ndarray, list[np.ndarray]]:
     """The fruits one fused fruit holds by its detector segments. `views`: (frame, segment, pixels, centre, ...)
     of the segments given to it (segment_centres). Centres closer than link_m are linked (single linkage); a
     cluster counts when seen in at least min_frames frames, and is a fruit of its own when it and another
-    such cluster are seen together (in one frame) in at least min_frames frames. Two clusters seen together
-    in fewer frames (at least one) are two fruits too where `off_fruit` says the smaller one's centre lies
-    off the fused fruit (its sphere): 3D evidence in place of repeated sightings, for a fruit the recording's
-    first or last frames show only once or twice. Returns (the cluster of each view, -1 for none; the
-    clusters' centres, the one with most pixels first), or (all -1, []) where the segments show one fruit."""
+    such cluster are seen together (in one frame) in at least min_frames frames. `off_fruit(centre)` says
+    whether a centre lies off the fused fruit (outside its sphere: True, inside: False; None where the fruit
+    has no plausible sphere): two clusters seen together in fewer frames (at least one) are two fruits too
+    where the smaller one is not on the fruit (True or None), and a cluster off the fruit's sphere (True) is a
+    fruit of its own beside the largest cluster even where they never share a frame. 3D evidence in place of
+    repeated sightings, for a fruit the recording's first or last frames show once or twice. Returns (the
+    cluster of each view, -1 for none; the clusters' centres, the one with most pixels first), or (all -1, [])
+    where the segments show one fruit."""
     labels = np.full(len(views), -1)
     if link_m <= 0 or len(views) < 2:
         return labels, []
@@ -703,6 +709,8 @@ def detector_clusters(views: list[tuple], link_m: float, min_frames: int,
         frames_of[c].add(f)
     px = {c: sum(v[2] for v, r in zip(views, raw) if r == c) for c in frames_of}
     lasting = {c for c, fs in frames_of.items() if len(fs) >= min_frames}
+    off = {c: None if off_fruit is None else off_fruit(np.median(pts[raw == c], 0)) for c in frames_of}
+    largest = max(frames_of, key=px.get)
     together = set()
     for a in frames_of:
         for b in frames_of:
@@ -711,7 +719,8 @@ def detector_clusters(views: list[tuple], link_m: float, min_frames: int,
             shared = len(frames_of[a] & frames_of[b])
             if a in lasting and b in lasting and shared >= min_frames:
                 together |= {a, b}
-            elif shared and off_fruit is not None and off_fruit(np.median(pts[raw == min(a, b, key=px.get)], 0)):
+            elif off_fruit is not None and ((shared and off[min(a, b, key=px.get)] is not False)
+                                            or (largest in (a, b) and off[a if b == largest else b] is True)):
                 together |= {a, b}
     if not together:
         return labels, []
@@ -834,10 +843,10 @@ def split_fruits(seg_views: dict, in_frame: dict[int, set[int]], depth_file: dic
     known = sorted(fruit_centres)
     known_xyz = np.stack([fruit_centres[g] for g in known]) if known else np.zeros((0, 3))
     for f, views in sorted(seg_views.items()):
-        ball = spheres.get(f)   # a fruit without a plausible sphere (pieces of several, most often): off everywhere
+        ball = spheres.get(f)
         labels, centres = detector_clusters(
             views, cfg.detector_split_m, cfg.min_split_frames,
-            lambda c: ball is None or float(np.linalg.norm(c - ball[0])) > ball[1] + cfg.track_margin_m)
+            lambda c: None if ball is None else float(np.linalg.norm(c - ball[0])) > ball[1] + cfg.track_margin_m)
         if not centres:
             continue
         fits = [fruit_sphere(np.concatenate([v[4] for v, lab in zip(views, labels) if lab == j]),

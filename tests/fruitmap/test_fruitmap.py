@@ -502,8 +502,13 @@ def test_the_detector_shows_a_fused_fruit_as_two_when_two_lasting_clusters_share
     assert list(labels) == [0] * 6 + [1, -1] and np.linalg.norm(centres[1] - y) < 0.01
     near = [view(f, 1, 500, x, f) for f in range(6)] + [view(3, 2, 100, x + [0.035, 0, 0], 22)]
     assert not off(x + [0.035, 0, 0]) and panoptic_fusion.detector_clusters(near, 0.03, 2, off)[1] == []
-    assert len(panoptic_fusion.detector_clusters(near, 0.03, 2, lambda c: True)[1]) == 2   # no sphere: off
-    assert panoptic_fusion.detector_clusters(apart, 0.03, 2, lambda c: True)[1] == []      # never together
+    assert len(panoptic_fusion.detector_clusters(near, 0.03, 2, lambda c: None)[1]) == 2   # no sphere: not on it
+    # clusters never seen in one frame: one fruit without a sphere, two where one lies off the fruit's sphere (a
+    # fruit seen in the last frame alone, where the detector missed the fruit whose id it was painted with)
+    assert panoptic_fusion.detector_clusters(apart, 0.03, 2, lambda c: None)[1] == []
+    assert panoptic_fusion.detector_clusters(apart, 0.03, 2, lambda c: False)[1] == []
+    labels, centres = panoptic_fusion.detector_clusters(apart, 0.03, 2, off)
+    assert list(labels) == [0] * 3 + [1] * 3 and np.linalg.norm(centres[1] - y) < 0.01
     assert panoptic_fusion.detector_clusters(views, 0.0, 2)[1] == []
     with pytest.raises(ValueError, match="detector_split_m"):
         panoptic_fusion.Config(detector_split_m=-0.01)
