@@ -490,18 +490,25 @@ def relabel_by_surface(inst: np.ndarray, depth: np.ndarray, k: np.ndarray, c2w: 
     return int(move.sum())
 
 
-def segment_owners(inst: np.ndarray, segments: np.ndarray) -> np.ndarray:
-    """[max segment id + 1] the fruit of `inst` ([H, W] fruit ids) holding most of each detector segment's
-    (`segments` [H, W] ids, 0 = none) fruit pixels; 0 for segments on no fruit."""
-    owner = np.zeros(int(segments.max()) + 1, np.int64)
+def fruit_segment_pairs(inst: np.ndarray, segments: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(fruit ids, segment ids) of the (fruit, detector segment) pairs sharing pixels (`inst` [H, W] fruit ids,
+    `segments` [H, W] ids, 0 = none), the pair sharing the most pixels first (ties: smaller fruit id, then
+    segment id)."""
     both = (inst > 0) & (segments > 0)
-    if both.any():
-        base = int(inst.max()) + 1
-        keys, n = np.unique(segments[both].astype(np.int64) * base + inst[both], return_counts=True)
-        seg, fruit = np.divmod(keys, base)
-        order = np.lexsort((-n, seg))                               # per segment, its largest fruit first
-        first = np.r_[True, np.diff(seg[order]) != 0]
-        owner[seg[order][first]] = fruit[order][first]
+    if not both.any():
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    base = int(segments.max()) + 1
+    keys, n = np.unique(inst[both].astype(np.int64) * base + segments[both], return_counts=True)
+    keys = keys[np.argsort(-n, kind="stable")]
+    return keys // base, keys % base
+
+
+def segment_owners(fruit: np.ndarray, seg: np.ndarray, n_segments: int) -> np.ndarray:
+    """[n_segments] the fruit holding most of each detector segment's fruit pixels (fruit_segment_pairs), 0 for
+    segments on no fruit."""
+    owner = np.zeros(n_segments, np.int64)
+    _, first = np.unique(seg, return_index=True)     # each segment's first, largest pair
+    owner[seg[first]] = fruit[first]
     return owner
 
 
@@ -527,7 +534,8 @@ def clear_off_sphere(inst: np.ndarray, segments: np.ndarray | None, depth: np.nd
     off = np.linalg.norm(p - centres[own], axis=1) > radii[own] * factor + margin_m
     if segments is not None and off.any():
         sid = segments[v, u]
-        off &= ~((sid > 0) & (segment_owners(inst, segments)[sid] == inst[v, u]))
+        owner = segment_owners(*fruit_segment_pairs(inst, segments), int(segments.max()) + 1)
+        off &= ~((sid > 0) & (owner[sid] == inst[v, u]))
     inst[v[off], u[off]] = 0
     return int(off.sum())
 
@@ -596,23 +604,21 @@ def fill_from_detector(inst: np.ndarray, segments: np.ndarray, depth: np.ndarray
     one holding most of its pixels, provided that segment holds more of this fruit's pixels than of any other
     fruit's (a segment the detector spread over two fruits feeds only the fruit it covers most). Returns the
     pixels filled."""
-    both = (inst > 0) & (segments > 0)
-    if margin_m <= 0 or not spheres or not both.any():
+    if margin_m <= 0 or not spheres:
         return 0
-    pairs, n = np.unique(np.c_[inst[both].astype(np.int64), segments[both]], axis=0, return_counts=True)
-    order = np.argsort(-n, kind="stable")
-    seg_of: dict[int, int] = {}
-    fruit_of: dict[int, int] = {}
-    for f, s in pairs[order].tolist():
-        seg_of.setdefault(f, s)
-        fruit_of.setdefault(s, f)
+    fruit, seg = fruit_segment_pairs(inst, segments)
+    if not len(fruit):
+        return 0
+    owner = segment_owners(fruit, seg, int(segments.max()) + 1)
+    _, first = np.unique(fruit, return_index=True)   # each fruit's first, largest pair: the segment holding most of it
+    seg_of = dict(zip(fruit[first].tolist(), seg[first].tolist()))
     ids, centres, radii = sphere_arrays(spheres)
     # each segment feeds at most one fruit, so the free pixels (no fruit, a segment, a depth) are found once
     free_v, free_u = np.nonzero((inst == 0) & (segments > 0) & (depth > 0))
     free_seg = segments[free_v, free_u]
     filled = 0
     for f, s in seg_of.items():
-        if fruit_of[s] != f or f not in spheres:
+        if owner[s] != f or f not in spheres:
             continue
         mine = free_seg == s
         if not mine.any():
