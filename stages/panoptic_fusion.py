@@ -120,9 +120,13 @@ class Config:
     wider than the fruit, over the leaves and background behind it (the sensor measures them there), and
     paints a fruit that enters or leaves the image in a recording's first or last frames with a neighbour's
     id; the spheres fitted to elongated fruits are wider than the fruits, so the pixels cleared lie well
-    beyond the fruit. Lower it (towards 1) to clear more of the halo, raise it where fruits are far from round
-    or the spheres are poor (a fruit's own pixels beyond its sphere are lost). Needs spheres (track_margin_m >
-    0); with surface_depth 'rendered' the halo lies on the render's fruit surface and is not cleared."""
+    beyond the fruit. A fruit whose rendered surface lies off the sensor's by more than the rule tolerates
+    beyond the sphere ((this multiple - 1) x radius + track_margin_m, in the median over the fruit's views)
+    keeps its pixels: its sphere, fitted to the render, is no witness of where the fruit is (the render can
+    misplace a fruit that a window saw in few frames by several centimetres). Lower it (towards 1) to clear
+    more of the halo, raise it where fruits are far from round or the spheres are poor (a fruit's own pixels
+    beyond its sphere are lost). Needs spheres (track_margin_m > 0); with surface_depth 'rendered' the halo
+    lies on the render's fruit surface and is not cleared."""
     detector_fill: bool = True
     """in every fused frame, give a fruit the pixels of its detector segment that the render left as stuff or
     void and whose 3D point (placed with surface_depth) lies within the fruit's sphere (radius +
@@ -254,6 +258,7 @@ class SlotView:
     n_px: int
     class_px: np.ndarray       # [N_CLASSES + 1] pixel counts per thing/stuff class
     points: np.ndarray         # [n, 3] world points (subsampled)
+    depth_gap: float = np.nan  # median rendered - sensor z-depth (m) over its pixels with both; nan: none
 
 
 @dataclass
@@ -407,6 +412,31 @@ def fruit_points(groups: list[list[int]], local: list[LocalFruit], slot_views: d
         pts = [slot_views[(local[i].window_id, local[i].slot)][fg].points for i in g for fg in local[i].frames]
         out[local[g[0]].fruit_id] = np.concatenate(pts) if pts else np.zeros((0, 3))
     return out
+
+
+def fruit_render_gaps(groups: list[list[int]], local: list[LocalFruit], slot_views: dict) -> dict[int, float]:
+    """{fruit id: median over its slot views (`groups` of `local` fruits) of their depth_gap (rendered - sensor
+    z-depth, m)} of the fused fruits with a sensor depth in at least one view."""
+    out = {}
+    for g in groups:
+        gaps = [slot_views[(local[i].window_id, local[i].slot)][fg].depth_gap for i in g for fg in local[i].frames]
+        gaps = [x for x in gaps if np.isfinite(x)]
+        if gaps:
+            out[local[g[0]].fruit_id] = float(np.median(gaps))
+    return out
+
+
+def render_off_sensor(spheres: dict[int, tuple[np.ndarray, float]], gaps: dict[int, float], cfg: Config
+                      ) -> set[int]:
+    """The fruits with a sphere whose rendered surface lies off the sensor's (`gaps`: fruit_render_gaps) by
+    more than off_sphere_factor tolerates beyond the sphere ((factor - 1) x radius + track_margin_m): their
+    sphere, fitted to the render, does not say where the sensor sees the fruit, so clear_off_sphere leaves
+    their pixels be. Where a window saw a fruit from few frames (a recording's first or last frames) its
+    render can place the fruit several centimetres off the measured surface."""
+    if cfg.off_sphere_factor <= 0:
+        return set()
+    return {f for f, (_, r) in spheres.items()
+            if abs(gaps.get(f, 0.0)) > (cfg.off_sphere_factor - 1) * r + cfg.track_margin_m}
 
 
 def fruit_spheres(points: dict[int, np.ndarray], max_radius_m: float) -> dict[int, tuple[np.ndarray, float]]:
@@ -639,15 +669,16 @@ def fill_from_detector(inst: np.ndarray, segments: np.ndarray, depth: np.ndarray
 
 def surface_rules(inst: np.ndarray, segments: np.ndarray | None, depth: np.ndarray, k: np.ndarray,
                   c2w: np.ndarray, spheres: dict[int, tuple[np.ndarray, float]], clouds: dict[int, cKDTree],
-                  cfg: Config, ctx: StageContext) -> None:
-    """track_margin_m (relabel_by_surface), off_sphere_factor (clear_off_sphere), detector_fill
-    (fill_from_detector, where the frame has detector segments) and border_band_px (border_surfaces) on one
-    fused frame (`inst` changed in place; cleared pixels get fruit id 0, which the callers map to background),
-    their pixels counted in the summary."""
+                  off_sensor: set[int], cfg: Config, ctx: StageContext) -> None:
+    """track_margin_m (relabel_by_surface), off_sphere_factor (clear_off_sphere, not for the fruits in
+    `off_sensor`: render_off_sensor), detector_fill (fill_from_detector, where the frame has detector
+    segments) and border_band_px (border_surfaces) on one fused frame (`inst` changed in place; cleared pixels
+    get fruit id 0, which the callers map to background), their pixels counted in the summary."""
     moved = relabel_by_surface(inst, depth, k, c2w, spheres, cfg.track_margin_m)
     if moved:
         ctx.count("pixels_moved_to_their_surface", moved)
-    cleared = clear_off_sphere(inst, segments, depth, k, c2w, spheres, cfg.track_margin_m, cfg.off_sphere_factor)
+    judged = {f: ball for f, ball in spheres.items() if f not in off_sensor}
+    cleared = clear_off_sphere(inst, segments, depth, k, c2w, judged, cfg.track_margin_m, cfg.off_sphere_factor)
     if cleared:
         ctx.count("pixels_cleared_off_their_sphere", cleared)
     if cfg.detector_fill and segments is not None:
@@ -829,8 +860,8 @@ def compose(labelled: list[tuple[np.ndarray, np.ndarray, np.ndarray]], wins: lis
 
 def split_fruits(seg_views: dict, in_frame: dict[int, set[int]], depth_file: dict[int, Path],
                  cams: dict[int, np.ndarray], rows: list[dict], spheres: dict, clouds: dict[int, cKDTree],
-                 fruit_centres: dict[int, np.ndarray], fruit_class: np.ndarray, frames: pd.DataFrame, dropped: dict,
-                 out_dir: Path, cfg: Config, ctx: StageContext) -> int:
+                 off_sensor: set[int], fruit_centres: dict[int, np.ndarray], fruit_class: np.ndarray,
+                 frames: pd.DataFrame, dropped: dict, out_dir: Path, cfg: Config, ctx: StageContext) -> int:
     """detector_split_m: rewrite the fused frames (PNGs in `out_dir`; per frame its depth PNG `depth_file` and
     pose `cams`) of the fruits the detector shows as several (detector_clusters on `seg_views`: per fruit its
     (frame, segment, pixels, centre, points)); `rows` (panoptic_frames rows) get their fruit counts updated.
@@ -839,13 +870,15 @@ def split_fruits(seg_views: dict, in_frame: dict[int, set[int]], depth_file: dic
     plausible) or inside its sphere (radius + track_margin_m), or whose sphere holds its centre; else it is a
     new fruit. Where every cluster has a plausible sphere, the fruit, new fruits and joined fruits without a
     sphere take their cluster's (and its segments' points inside it as their surface, `clouds`), and the
-    surface rules run again with them. `dropped`: the segments the depth filter dropped, per frame. Returns the
-    number of fruits of the row."""
+    surface rules run again with them (a fruit given its cluster's sphere leaves `off_sensor`: that sphere is
+    fitted to sensor points). `dropped`: the segments the depth filter dropped, per frame. Returns the number of
+    fruits of the row."""
     plans = {}
     classes = list(fruit_class)
     n_fruits = len(fruit_class) - 1
     sphere_of = dict(spheres)
     cloud_of = dict(clouds)
+    off_sensor = set(off_sensor)
     known = sorted(fruit_centres)
     known_xyz = np.stack([fruit_centres[g] for g in known]) if known else np.zeros((0, 3))
     for f, views in sorted(seg_views.items()):
@@ -879,6 +912,7 @@ def split_fruits(seg_views: dict, in_frame: dict[int, set[int]], depth_file: dic
             for j, (g, ball) in enumerate(zip(ids, balls)):
                 if j == 0 or g not in spheres:   # a sphere for this fruit, new fruits and hosts without one
                     sphere_of[g] = ball
+                    off_sensor.discard(g)   # fitted to its segments' sensor points
                     seen = np.concatenate([v[4] for v, lab in zip(views, labels) if lab == j])
                     cloud_of.pop(g, None)
                     cloud_of.update(seen_surfaces({g: seen}, {g: ball}, cfg))
@@ -911,7 +945,7 @@ def split_fruits(seg_views: dict, in_frame: dict[int, set[int]], depth_file: dic
                                       cfg.min_group_px)
             ctx.count("pixels_moved_by_detector_split", moved)
         if sphere_of:   # with the clusters' spheres: pieces without a sphere of their own join them
-            surface_rules(inst, segments, depth, k, c2w, sphere_of, cloud_of, cfg, ctx)
+            surface_rules(inst, segments, depth, k, c2w, sphere_of, cloud_of, off_sensor, cfg, ctx)
         m = inst != before
         sem[m] = fruit_class[inst[m]]
         write_png(out_dir / "semantic" / name, sem)
@@ -948,6 +982,7 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
     # pass 1: per (window, slot, frame) pixel groups (split where their 3D points lie apart), with their pixel
     # counts, classes and world points
     slot_views: dict[tuple[int, int], dict[tuple[int, int], SlotView]] = defaultdict(dict)
+    gap_check = cfg.surface_depth == "sensor" and cfg.off_sphere_factor > 0 and cfg.track_margin_m > 0
     masks: dict[tuple[int, int], np.ndarray] = {}
     groups_px: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}  # (pixel index, group > 0) per view
     for r in ctx.progress(views.itertuples(index=False), "read renders", total=len(views)):
@@ -963,6 +998,8 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
         v, u = np.nonzero(thing)
         v, u, ids, starts, ends = runs_by_key(v, u, inst[v, u])
         k = np.array([fr.fx, fr.fy, fr.cx, fr.cy], np.float64)
+        sensor = (with_sensor_depth(np.zeros_like(depth), ctx.abspath(fr.depth_path), fr.depth_scale_m)
+                  if gap_check else None)   # 0 where the sensor has no depth
         for s0, s1 in zip(starts, ends):
             vv, uu = v[s0:s1], u[s0:s1]
             good = depth[vv, uu] > 0
@@ -977,7 +1014,12 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
                 pts_g = pts[labels[good] == g]
                 cls = np.bincount(sem[vv[mine], uu[mine]], minlength=n_cls)[:n_cls]
                 pts_g = pts_g[subsample(len(pts_g), cfg.max_points_per_view)]
-                slot_views[(wid, int(ids[s0]))][(fid, g)] = SlotView(int(mine.sum()), cls, pts_g)
+                gap = np.nan
+                if sensor is not None:
+                    both = mine & good & (sensor[vv, uu] > 0)
+                    if both.any():
+                        gap = float(np.median(depth[vv[both], uu[both]] - sensor[vv[both], uu[both]]))
+                slot_views[(wid, int(ids[s0]))][(fid, g)] = SlotView(int(mine.sum()), cls, pts_g, gap)
         if fid in shared_frames:
             masks[(wid, fid)] = np.where(thing, code(inst, group), 0).astype(np.int32)
         flat = np.flatnonzero(group)
@@ -1022,12 +1064,14 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
         for i in g:
             px[local[i].class_id] += local[i].n_px
         fruit_class[local[g[0]].fruit_id] = max(px, key=px.get)
-    spheres, clouds = {}, {}
+    spheres, clouds, off_sensor = {}, {}, set()
     if cfg.track_margin_m > 0:
         points = fruit_points(groups, local, slot_views)
         spheres = fruit_spheres(points, cfg.max_fruit_radius_m)
         clouds = seen_surfaces(points, spheres, cfg)
         del points
+        off_sensor = render_off_sensor(spheres, fruit_render_gaps(groups, local, slot_views), cfg)
+        ctx.count("spheres_off_the_sensor_depth", len(off_sensor))
     dropped = [lf for lf in local if lf.fruit_id == 0]
     ctx.count("slots", len(local))
     ctx.count("slots_dropped", len(dropped))
@@ -1077,7 +1121,7 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
             segments = fruit_segments(fr, ctx.data_root, dropped.get(fid))
         if spheres:
             before = out_inst.copy()
-            surface_rules(out_inst, segments, placed, k, r.c2w, spheres, clouds, cfg, ctx)
+            surface_rules(out_inst, segments, placed, k, r.c2w, spheres, clouds, off_sensor, cfg, ctx)
             m = out_inst != before
             out_sem[m] = fruit_class[out_inst[m]]
         if split and segments is not None:
@@ -1102,8 +1146,8 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
     if seg_views:
         centres = {local[g[0]].fruit_id: (spheres[local[g[0]].fruit_id][0] if local[g[0]].fruit_id in spheres
                                           else gcentre[j]) for j, g in enumerate(groups)}
-        n_fruits = split_fruits(seg_views, in_frame, depth_file, cams, rows, spheres, clouds, centres, fruit_class,
-                                frames, dropped, out_dir, cfg, ctx)
+        n_fruits = split_fruits(seg_views, in_frame, depth_file, cams, rows, spheres, clouds, off_sensor, centres,
+                                fruit_class, frames, dropped, out_dir, cfg, ctx)
     else:
         n_fruits = len(groups)
     slots = pd.DataFrame([{

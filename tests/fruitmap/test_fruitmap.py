@@ -340,6 +340,40 @@ def test_fruit_pixels_far_off_their_fruits_sphere_are_cleared_unless_the_detecto
             panoptic_fusion.Config(off_sphere_factor=bad)
 
 
+def test_a_fruit_whose_render_lies_off_the_sensors_surface_keeps_its_pixels(tmp_path):
+    # per fused fruit, the median over its views of (rendered - sensor) depth; views without a sensor depth skipped
+    view = lambda gap: panoptic_fusion.SlotView(10, np.zeros(3), np.zeros((0, 3)), gap)
+    slot_views = {(0, 1): {(0, 0): view(-0.06), (2, 0): view(-0.05), (4, 0): view(np.nan)},
+                  (1, 7): {(4, 0): view(-0.01)}, (0, 2): {(0, 0): view(np.nan)}}
+    local = [panoptic_fusion.LocalFruit(0, 1, 0, [(0, 0), (2, 0), (4, 0)], 30, 2, np.zeros(3), fruit_id=1),
+             panoptic_fusion.LocalFruit(1, 7, 0, [(4, 0)], 10, 2, np.zeros(3), fruit_id=1),
+             panoptic_fusion.LocalFruit(0, 2, 0, [(0, 0)], 10, 2, np.zeros(3), fruit_id=2)]
+    gaps = panoptic_fusion.fruit_render_gaps([[0, 1], [2]], local, slot_views)
+    assert gaps == {1: pytest.approx(-0.05)}
+    # the rule tolerates (1.25 - 1) x 4 cm + 1 cm = 2 cm beyond a 4 cm sphere
+    k = np.array([100.0, 100.0, 40.0, 30.0])
+    a, b = (np.array([-0.05, 0.0, 0.5]), 0.03), (np.array([0.06, 0.0, 0.55]), 0.03)
+    centre = np.zeros(3)
+    cfg = panoptic_fusion.Config(detector_fill=False, border_band_px=0)
+    spheres = {1: (centre, 0.04), 2: (centre, 0.04), 3: (centre, 0.04)}
+    off = panoptic_fusion.render_off_sensor(spheres, {1: -0.05, 2: 0.015, 4: 0.3}, cfg)
+    assert off == {1}
+    assert panoptic_fusion.render_off_sensor(spheres, {1: -0.05}, panoptic_fusion.Config(off_sphere_factor=0)) == set()
+    # fruit 1's render (and so its sphere) lies 10 cm in front of where the sensor sees it: its pixels all lie off
+    # that sphere, but stay; fruit 2's halo is cleared as before
+    depth, who = sphere_depth(k, (60, 80), [a, b], background_m=2.0)
+    halo = (who == -1) & (cv2.dilate((who == 1).astype(np.uint8), np.ones((7, 7), np.uint8)) > 0)
+    truth = np.where(who == 0, 1, np.where(who == 1, 2, 0)).astype(np.uint16)
+    rendered = {1: (a[0] - np.array([0.0, 0.0, 0.1]), a[1]), 2: b}
+    ctx = StageContext(stage="panoptic_fusion", seq=SEQ, data_root=tmp_path, show_progress=False)
+    for off_sensor, fruit_1_kept in ((set(), False), ({1}, True)):
+        inst = truth.copy()
+        inst[halo] = 2
+        panoptic_fusion.surface_rules(inst, None, depth, k, np.eye(4), rendered, {}, off_sensor, cfg, ctx)
+        assert (inst[who == 0] == (1 if fruit_1_kept else 0)).all()
+        assert (inst[halo] == 0).all() and (inst[who == 1] == 2).all()
+
+
 def test_a_fruit_takes_the_pixels_of_its_detector_segment_that_lie_on_its_sphere():
     k = np.array([100.0, 100.0, 40.0, 30.0])
     a, b = (np.array([-0.05, 0.0, 0.5]), 0.03), (np.array([0.05, 0.0, 0.55]), 0.035)
@@ -583,7 +617,7 @@ def test_split_fruits_rewrites_the_fused_frames_of_a_fruit_painted_over_two(tmp_
         ctx = StageContext(stage="panoptic_fusion", seq=SEQ, data_root=tmp_path, show_progress=False)
         n = panoptic_fusion.split_fruits(seg_views, {f: {4} for f in range(3)},
                                          {f: tmp_path / "depth" / f"{f:06d}.png" for f in range(3)},
-                                         {f: np.eye(4) for f in range(3)}, rows, {}, {}, fruit_centres,
+                                         {f: np.eye(4) for f in range(3)}, rows, {}, {}, set(), fruit_centres,
                                          np.full(n_ids + 1, cls, np.uint8), frames, {}, out_dir, cfg, ctx)
         return n, [read_label(out_dir / "instance" / f"{f:06d}.png", "x") for f in range(3)], ctx.summary
 
