@@ -123,7 +123,8 @@ class Config:
     beyond the fruit. A fruit whose rendered surface lies off the sensor's by more than the rule tolerates
     beyond the sphere ((this multiple - 1) x radius + track_margin_m, in the median over the fruit's views)
     keeps its pixels: its sphere, fitted to the render, is no witness of where the fruit is (the render can
-    misplace a fruit that a window saw in few frames by several centimetres). Lower it (towards 1) to clear
+    misplace a fruit that a window saw in few frames by several centimetres); border_band_px then looks for
+    its seen surface where the sensor puts it. Lower it (towards 1) to clear
     more of the halo, raise it where fruits are far from round or the spheres are poor (a fruit's own pixels
     beyond its sphere are lost). Needs spheres (track_margin_m > 0); with surface_depth 'rendered' the halo
     lies on the render's fruit surface and is not cleared."""
@@ -148,7 +149,9 @@ class Config:
     leaf or with the neighbour's slot, while the frames that see the fruit whole still place its surface. The
     seen surface, not the sphere's front, because a sphere fitted to an elongated fruit is wider than the
     fruit and passes centimetres in front of its sides, where the sliver is. A leaf beside the fruit, in front
-    of it or behind it is not taken, so a wider band mostly costs time. Needs spheres (track_margin_m > 0)."""
+    of it or behind it is not taken, so a wider band mostly costs time. A fruit whose render lies off the
+    sensor's surface (see off_sphere_factor) has its seen surface moved by the median offset from its rendered
+    to its measured points. Needs spheres (track_margin_m > 0)."""
     detector_split_m: float = 0.03
     """metres, >= 0; 0 = off. A fused fruit that the detector shows as several fruits is split. In every fused
     frame each detector segment lying mostly on fused fruits is given to the fruit holding most of it (at least
@@ -259,6 +262,9 @@ class SlotView:
     class_px: np.ndarray       # [N_CLASSES + 1] pixel counts per thing/stuff class
     points: np.ndarray         # [n, 3] world points (subsampled)
     depth_gap: float = np.nan  # median rendered - sensor z-depth (m) over its pixels with both; nan: none
+    sensor_offset: np.ndarray | None = None
+    """[3] median of (point placed with the sensor depth - point placed with the rendered one) over the same
+    pixels; None without a sensor depth"""
 
 
 @dataclass
@@ -414,29 +420,37 @@ def fruit_points(groups: list[list[int]], local: list[LocalFruit], slot_views: d
     return out
 
 
-def fruit_render_gaps(groups: list[list[int]], local: list[LocalFruit], slot_views: dict) -> dict[int, float]:
-    """{fruit id: median over its slot views (`groups` of `local` fruits) of their depth_gap (rendered - sensor
-    z-depth, m)} of the fused fruits with a sensor depth in at least one view."""
+def fruit_render_gaps(groups: list[list[int]], local: list[LocalFruit], slot_views: dict
+                      ) -> dict[int, tuple[float, np.ndarray]]:
+    """{fruit id: (median over its slot views (`groups` of `local` fruits) of their depth_gap (rendered - sensor
+    z-depth, m), median of their sensor_offset [3])} of the fused fruits with a sensor depth in some view."""
     out = {}
     for g in groups:
-        gaps = [slot_views[(local[i].window_id, local[i].slot)][fg].depth_gap for i in g for fg in local[i].frames]
-        gaps = [x for x in gaps if np.isfinite(x)]
-        if gaps:
-            out[local[g[0]].fruit_id] = float(np.median(gaps))
+        views = [slot_views[(local[i].window_id, local[i].slot)][fg] for i in g for fg in local[i].frames]
+        views = [sv for sv in views if sv.sensor_offset is not None]
+        if views:
+            out[local[g[0]].fruit_id] = (float(np.median([sv.depth_gap for sv in views])),
+                                         np.median(np.stack([sv.sensor_offset for sv in views]), axis=0))
     return out
 
 
-def render_off_sensor(spheres: dict[int, tuple[np.ndarray, float]], gaps: dict[int, float], cfg: Config
-                      ) -> set[int]:
-    """The fruits with a sphere whose rendered surface lies off the sensor's (`gaps`: fruit_render_gaps) by
-    more than off_sphere_factor tolerates beyond the sphere ((factor - 1) x radius + track_margin_m): their
-    sphere, fitted to the render, does not say where the sensor sees the fruit, so clear_off_sphere leaves
-    their pixels be. Where a window saw a fruit from few frames (a recording's first or last frames) its
-    render can place the fruit several centimetres off the measured surface."""
+def render_off_sensor(spheres: dict[int, tuple[np.ndarray, float]], gaps: dict[int, tuple[float, np.ndarray]],
+                      cfg: Config) -> dict[int, np.ndarray]:
+    """{fruit id: its sensor offset [3]} of the fruits with a sphere whose rendered surface lies off the sensor's
+    (`gaps`: fruit_render_gaps) by more than off_sphere_factor tolerates beyond the sphere ((factor - 1) x
+    radius + track_margin_m). Their sphere, fitted to the render, does not say where the sensor sees the
+    fruit: clear_off_sphere leaves their pixels be, and border_surfaces looks for their seen surface moved by
+    the offset. Where a window saw a fruit from few frames (a recording's first or last frames) its render
+    can place the fruit several centimetres off the measured surface."""
     if cfg.off_sphere_factor <= 0:
-        return set()
-    return {f for f, (_, r) in spheres.items()
-            if abs(gaps.get(f, 0.0)) > (cfg.off_sphere_factor - 1) * r + cfg.track_margin_m}
+        return {}
+    return {f: gaps[f][1] for f, (_, r) in spheres.items()
+            if f in gaps and abs(gaps[f][0]) > (cfg.off_sphere_factor - 1) * r + cfg.track_margin_m}
+
+
+def moved_surfaces(clouds: dict[int, cKDTree], offsets: dict[int, np.ndarray]) -> dict[int, cKDTree]:
+    """`clouds` (seen surfaces) with those of the fruits in `offsets` moved by their offset."""
+    return {f: cKDTree(np.asarray(c.data) + offsets[f]) if f in offsets else c for f, c in clouds.items()}
 
 
 def fruit_spheres(points: dict[int, np.ndarray], max_radius_m: float) -> dict[int, tuple[np.ndarray, float]]:
@@ -669,10 +683,11 @@ def fill_from_detector(inst: np.ndarray, segments: np.ndarray, depth: np.ndarray
 
 def surface_rules(inst: np.ndarray, segments: np.ndarray | None, depth: np.ndarray, k: np.ndarray,
                   c2w: np.ndarray, spheres: dict[int, tuple[np.ndarray, float]], clouds: dict[int, cKDTree],
-                  off_sensor: set[int], cfg: Config, ctx: StageContext) -> None:
+                  off_sensor: dict[int, np.ndarray], cfg: Config, ctx: StageContext) -> None:
     """track_margin_m (relabel_by_surface), off_sphere_factor (clear_off_sphere, not for the fruits in
     `off_sensor`: render_off_sensor), detector_fill (fill_from_detector, where the frame has detector
-    segments) and border_band_px (border_surfaces) on one fused frame (`inst` changed in place; cleared pixels
+    segments) and border_band_px (border_surfaces; the spheres of the fruits in `off_sensor` moved by their
+    offset, as their `clouds` are: moved_surfaces) on one fused frame (`inst` changed in place; cleared pixels
     get fruit id 0, which the callers map to background), their pixels counted in the summary."""
     moved = relabel_by_surface(inst, depth, k, c2w, spheres, cfg.track_margin_m)
     if moved:
@@ -687,7 +702,8 @@ def surface_rules(inst: np.ndarray, segments: np.ndarray | None, depth: np.ndarr
             ctx.count("pixels_filled_from_detector", filled)
     if cfg.border_band_px:
         band = int(np.ceil(cfg.border_band_px * np.sqrt(max(1.0, inst.size / BASE_PIXELS)) - 1e-9))
-        moved = border_surfaces(inst, depth, k, c2w, spheres, clouds, cfg.track_margin_m, band)
+        at_sensor = {f: (c + off_sensor[f], r) if f in off_sensor else (c, r) for f, (c, r) in spheres.items()}
+        moved = border_surfaces(inst, depth, k, c2w, at_sensor, clouds, cfg.track_margin_m, band)
         if moved:
             ctx.count("pixels_given_at_the_border", moved)
 
@@ -860,7 +876,7 @@ def compose(labelled: list[tuple[np.ndarray, np.ndarray, np.ndarray]], wins: lis
 
 def split_fruits(seg_views: dict, in_frame: dict[int, set[int]], depth_file: dict[int, Path],
                  cams: dict[int, np.ndarray], rows: list[dict], spheres: dict, clouds: dict[int, cKDTree],
-                 off_sensor: set[int], fruit_centres: dict[int, np.ndarray], fruit_class: np.ndarray,
+                 off_sensor: dict[int, np.ndarray], fruit_centres: dict[int, np.ndarray], fruit_class: np.ndarray,
                  frames: pd.DataFrame, dropped: dict, out_dir: Path, cfg: Config, ctx: StageContext) -> int:
     """detector_split_m: rewrite the fused frames (PNGs in `out_dir`; per frame its depth PNG `depth_file` and
     pose `cams`) of the fruits the detector shows as several (detector_clusters on `seg_views`: per fruit its
@@ -878,7 +894,7 @@ def split_fruits(seg_views: dict, in_frame: dict[int, set[int]], depth_file: dic
     n_fruits = len(fruit_class) - 1
     sphere_of = dict(spheres)
     cloud_of = dict(clouds)
-    off_sensor = set(off_sensor)
+    off_sensor = dict(off_sensor)
     known = sorted(fruit_centres)
     known_xyz = np.stack([fruit_centres[g] for g in known]) if known else np.zeros((0, 3))
     for f, views in sorted(seg_views.items()):
@@ -912,7 +928,7 @@ def split_fruits(seg_views: dict, in_frame: dict[int, set[int]], depth_file: dic
             for j, (g, ball) in enumerate(zip(ids, balls)):
                 if j == 0 or g not in spheres:   # a sphere for this fruit, new fruits and hosts without one
                     sphere_of[g] = ball
-                    off_sensor.discard(g)   # fitted to its segments' sensor points
+                    off_sensor.pop(g, None)   # fitted to its segments' sensor points
                     seen = np.concatenate([v[4] for v, lab in zip(views, labels) if lab == j])
                     cloud_of.pop(g, None)
                     cloud_of.update(seen_surfaces({g: seen}, {g: ball}, cfg))
@@ -1014,12 +1030,14 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
                 pts_g = pts[labels[good] == g]
                 cls = np.bincount(sem[vv[mine], uu[mine]], minlength=n_cls)[:n_cls]
                 pts_g = pts_g[subsample(len(pts_g), cfg.max_points_per_view)]
-                gap = np.nan
+                gap, offset = np.nan, None
                 if sensor is not None:
                     both = mine & good & (sensor[vv, uu] > 0)
                     if both.any():
-                        gap = float(np.median(depth[vv[both], uu[both]] - sensor[vv[both], uu[both]]))
-                slot_views[(wid, int(ids[s0]))][(fid, g)] = SlotView(int(mine.sum()), cls, pts_g, gap)
+                        vb, ub = vv[both], uu[both]
+                        gap = float(np.median(depth[vb, ub] - sensor[vb, ub]))
+                        offset = np.median(unproject(sensor, k, r.c2w, vb, ub) - unproject(depth, k, r.c2w, vb, ub), 0)
+                slot_views[(wid, int(ids[s0]))][(fid, g)] = SlotView(int(mine.sum()), cls, pts_g, gap, offset)
         if fid in shared_frames:
             masks[(wid, fid)] = np.where(thing, code(inst, group), 0).astype(np.int32)
         flat = np.flatnonzero(group)
@@ -1064,7 +1082,7 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
         for i in g:
             px[local[i].class_id] += local[i].n_px
         fruit_class[local[g[0]].fruit_id] = max(px, key=px.get)
-    spheres, clouds, off_sensor = {}, {}, set()
+    spheres, clouds, off_sensor = {}, {}, {}
     if cfg.track_margin_m > 0:
         points = fruit_points(groups, local, slot_views)
         spheres = fruit_spheres(points, cfg.max_fruit_radius_m)
@@ -1072,6 +1090,7 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
         del points
         off_sensor = render_off_sensor(spheres, fruit_render_gaps(groups, local, slot_views), cfg)
         ctx.count("spheres_off_the_sensor_depth", len(off_sensor))
+        clouds = moved_surfaces(clouds, off_sensor)
     dropped = [lf for lf in local if lf.fruit_id == 0]
     ctx.count("slots", len(local))
     ctx.count("slots_dropped", len(dropped))

@@ -340,37 +340,48 @@ def test_fruit_pixels_far_off_their_fruits_sphere_are_cleared_unless_the_detecto
             panoptic_fusion.Config(off_sphere_factor=bad)
 
 
-def test_a_fruit_whose_render_lies_off_the_sensors_surface_keeps_its_pixels(tmp_path):
-    # per fused fruit, the median over its views of (rendered - sensor) depth; views without a sensor depth skipped
-    view = lambda gap: panoptic_fusion.SlotView(10, np.zeros(3), np.zeros((0, 3)), gap)
-    slot_views = {(0, 1): {(0, 0): view(-0.06), (2, 0): view(-0.05), (4, 0): view(np.nan)},
-                  (1, 7): {(4, 0): view(-0.01)}, (0, 2): {(0, 0): view(np.nan)}}
+def test_a_fruit_whose_render_lies_off_the_sensors_surface_is_judged_where_the_sensor_sees_it(tmp_path):
+    # per fused fruit, the medians over its views of (rendered - sensor) depth and of the offset from the
+    # rendered to the measured point; views without a sensor depth are skipped
+    view = lambda gap, dz: panoptic_fusion.SlotView(10, np.zeros(3), np.zeros((0, 3)), gap,
+                                                    None if dz is None else np.array([0.0, 0.0, dz]))
+    slot_views = {(0, 1): {(0, 0): view(-0.06, 0.06), (2, 0): view(-0.05, 0.05), (4, 0): view(np.nan, None)},
+                  (1, 7): {(4, 0): view(-0.01, 0.01)}, (0, 2): {(0, 0): view(np.nan, None)}}
     local = [panoptic_fusion.LocalFruit(0, 1, 0, [(0, 0), (2, 0), (4, 0)], 30, 2, np.zeros(3), fruit_id=1),
              panoptic_fusion.LocalFruit(1, 7, 0, [(4, 0)], 10, 2, np.zeros(3), fruit_id=1),
              panoptic_fusion.LocalFruit(0, 2, 0, [(0, 0)], 10, 2, np.zeros(3), fruit_id=2)]
     gaps = panoptic_fusion.fruit_render_gaps([[0, 1], [2]], local, slot_views)
-    assert gaps == {1: pytest.approx(-0.05)}
-    # the rule tolerates (1.25 - 1) x 4 cm + 1 cm = 2 cm beyond a 4 cm sphere
+    assert set(gaps) == {1} and gaps[1][0] == pytest.approx(-0.05) and np.allclose(gaps[1][1], [0, 0, 0.05])
+    # the clearing tolerates (1.25 - 1) x 4 cm + 1 cm = 2 cm beyond a 4 cm sphere
+    cfg = panoptic_fusion.Config(detector_fill=False, border_band_px=4)
+    ball = (np.zeros(3), 0.04)
+    shift = np.array([0.0, 0.0, 0.1])
+    gaps = {1: (-0.05, shift), 2: (0.015, shift), 4: (0.3, shift)}
+    off = panoptic_fusion.render_off_sensor({1: ball, 2: ball, 3: ball}, gaps, cfg)
+    assert list(off) == [1] and (off[1] == shift).all()
+    assert panoptic_fusion.render_off_sensor({1: ball}, gaps, panoptic_fusion.Config(off_sphere_factor=0)) == {}
+    # fruit 1, cut off by the image's left edge, is rendered 10 cm in front of where the sensor sees it: all its
+    # pixels lie off its sphere, and its sliver in the edge band, painted as leaf, off its seen surface
     k = np.array([100.0, 100.0, 40.0, 30.0])
-    a, b = (np.array([-0.05, 0.0, 0.5]), 0.03), (np.array([0.06, 0.0, 0.55]), 0.03)
-    centre = np.zeros(3)
-    cfg = panoptic_fusion.Config(detector_fill=False, border_band_px=0)
-    spheres = {1: (centre, 0.04), 2: (centre, 0.04), 3: (centre, 0.04)}
-    off = panoptic_fusion.render_off_sensor(spheres, {1: -0.05, 2: 0.015, 4: 0.3}, cfg)
-    assert off == {1}
-    assert panoptic_fusion.render_off_sensor(spheres, {1: -0.05}, panoptic_fusion.Config(off_sphere_factor=0)) == set()
-    # fruit 1's render (and so its sphere) lies 10 cm in front of where the sensor sees it: its pixels all lie off
-    # that sphere, but stay; fruit 2's halo is cleared as before
+    a, b = (np.array([-0.2, 0.0, 0.5]), 0.03), (np.array([0.06, 0.0, 0.55]), 0.03)
     depth, who = sphere_depth(k, (60, 80), [a, b], background_m=2.0)
+    cols = np.arange(80)[None]
+    sliver, rest = (who == 0) & (cols < 4), (who == 0) & (cols >= 4)
     halo = (who == -1) & (cv2.dilate((who == 1).astype(np.uint8), np.ones((7, 7), np.uint8)) > 0)
+    assert sliver.sum() > 10 and rest.sum() > 10
     truth = np.where(who == 0, 1, np.where(who == 1, 2, 0)).astype(np.uint16)
-    rendered = {1: (a[0] - np.array([0.0, 0.0, 0.1]), a[1]), 2: b}
+    rendered = {1: (a[0] - shift, a[1]), 2: b}
+    clouds = panoptic_fusion.surface_clouds({f: front_cap(s) for f, s in rendered.items()}, rendered, 0.002)
     ctx = StageContext(stage="panoptic_fusion", seq=SEQ, data_root=tmp_path, show_progress=False)
-    for off_sensor, fruit_1_kept in ((set(), False), ({1}, True)):
+    for off_sensor in ({}, {1: shift}):
         inst = truth.copy()
+        inst[sliver] = 0
         inst[halo] = 2
-        panoptic_fusion.surface_rules(inst, None, depth, k, np.eye(4), rendered, {}, off_sensor, cfg, ctx)
-        assert (inst[who == 0] == (1 if fruit_1_kept else 0)).all()
+        seen = panoptic_fusion.moved_surfaces(clouds, off_sensor)
+        panoptic_fusion.surface_rules(inst, None, depth, k, np.eye(4), rendered, seen, off_sensor, cfg, ctx)
+        # judged against the render's sphere, its pixels are cleared; judged where the sensor sees it, it keeps
+        # them and takes back its sliver from its seen surface moved by the offset
+        assert (inst[who == 0] == (1 if off_sensor else 0)).all()
         assert (inst[halo] == 0).all() and (inst[who == 1] == 2).all()
 
 
