@@ -178,8 +178,9 @@ class Config:
     A window renders a fruit it saw only while the fruit entered or left its stretch of row smaller than it is,
     or paints it with a neighbour's id; the neighbouring window saw it whole. Off = the nearest window only."""
     max_points_per_view: int = 400
-    """points, >= 1: 3D points kept per slot and frame for the centre (evenly subsampled). More points cost
-    time and change the centres little; lower it on large images to save time."""
+    """points, >= 1: 3D points kept per slot and frame for the centre, and pixels used per slot and frame for
+    the offset between rendered and measured points (evenly subsampled). More points cost time and change the
+    centres little; lower it on large images to save time."""
 
     def __post_init__(self) -> None:
         if not self.max_match_distance_m > 0:
@@ -264,7 +265,7 @@ class SlotView:
     depth_gap: float = np.nan  # median rendered - sensor z-depth (m) over its pixels with both; nan: none
     sensor_offset: np.ndarray | None = None
     """[3] median of (point placed with the sensor depth - point placed with the rendered one) over the same
-    pixels; None without a sensor depth"""
+    pixels (at most max_points_per_view of them); None without a sensor depth"""
 
 
 @dataclass
@@ -1036,6 +1037,7 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
                     if both.any():
                         vb, ub = vv[both], uu[both]
                         gap = float(np.median(depth[vb, ub] - sensor[vb, ub]))
+                        vb, ub = (x[subsample(len(vb), cfg.max_points_per_view)] for x in (vb, ub))
                         offset = np.median(unproject(sensor, k, r.c2w, vb, ub) - unproject(depth, k, r.c2w, vb, ub), 0)
                 slot_views[(wid, int(ids[s0]))][(fid, g)] = SlotView(int(mine.sum()), cls, pts_g, gap, offset)
         if fid in shared_frames:
