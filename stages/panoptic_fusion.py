@@ -124,10 +124,10 @@ class Config:
     beyond the sphere ((this multiple - 1) x radius + track_margin_m, in the median over the fruit's views)
     keeps its pixels: its sphere, fitted to the render, is no witness of where the fruit is (the render can
     misplace a fruit that a window saw in few frames by several centimetres); border_band_px then looks for
-    its seen surface where the sensor puts it. Lower it (towards 1) to clear
-    more of the halo, raise it where fruits are far from round or the spheres are poor (a fruit's own pixels
-    beyond its sphere are lost). Needs spheres (track_margin_m > 0); with surface_depth 'rendered' the halo
-    lies on the render's fruit surface and is not cleared."""
+    its seen surface where the sensor puts it. Lower it (towards 1) to clear more of the halo, raise it where
+    fruits are far from round or the spheres are poor (a fruit's own pixels beyond its sphere are lost). Needs
+    spheres (track_margin_m > 0); with surface_depth 'rendered' the halo lies on the render's fruit surface
+    and is not cleared."""
     detector_fill: bool = True
     """in every fused frame, give a fruit the pixels of its detector segment that the render left as stuff or
     void and whose 3D point (placed with surface_depth) lies within the fruit's sphere (radius +
@@ -1037,8 +1037,8 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
                     if both.any():
                         vb, ub = vv[both], uu[both]
                         gap = float(np.median(depth[vb, ub] - sensor[vb, ub]))
-                        vb, ub = (x[subsample(len(vb), cfg.max_points_per_view)] for x in (vb, ub))
-                        offset = np.median(unproject(sensor, k, r.c2w, vb, ub) - unproject(depth, k, r.c2w, vb, ub), 0)
+                        sel = subsample(len(vb), cfg.max_points_per_view)   # their rendered points are in pts
+                        offset = np.median(unproject(sensor, k, r.c2w, vb[sel], ub[sel]) - pts[both[good]][sel], 0)
                 slot_views[(wid, int(ids[s0]))][(fid, g)] = SlotView(int(mine.sum()), cls, pts_g, gap, offset)
         if fid in shared_frames:
             masks[(wid, fid)] = np.where(thing, code(inst, group), 0).astype(np.int32)
