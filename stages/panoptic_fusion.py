@@ -112,22 +112,24 @@ class Config:
     neighbour's sphere, while the sensor measures the fruit's own surface. Use 'rendered' for a depth sensor
     whose error on fruits is larger than track_margin_m. The spheres are fitted to rendered points either way."""
     off_sphere_factor: float = 1.25
-    """multiple of a fruit's sphere radius, 0 (off) or >= 1. In every fused frame, after track_margin_m, a pixel
-    of a fruit with a sphere whose 3D point (placed with surface_depth) lies farther from the sphere's centre
-    than this multiple of its radius plus track_margin_m is not that fruit: it becomes background (semantic
-    class 0, no fruit id), unless a detector segment lying mostly on that fruit covers it (the detector, an
-    independent witness on the fused frames, shows the fruit there). The render paints a fruit's silhouette
-    wider than the fruit, over the leaves and background behind it (the sensor measures them there), and
-    paints a fruit that enters or leaves the image in a recording's first or last frames with a neighbour's
-    id; the spheres fitted to elongated fruits are wider than the fruits, so the pixels cleared lie well
-    beyond the fruit. A fruit whose rendered surface lies off the sensor's by more than the rule tolerates
-    beyond the sphere ((this multiple - 1) x radius + track_margin_m, in the median over the fruit's views)
-    keeps its pixels: its sphere, fitted to the render, is no witness of where the fruit is (the render can
-    misplace a fruit that a window saw in few frames by several centimetres); border_band_px then looks for
-    its seen surface where the sensor puts it. Lower it (towards 1) to clear more of the halo, raise it where
-    fruits are far from round or the spheres are poor (a fruit's own pixels beyond its sphere are lost). Needs
-    spheres (track_margin_m > 0); with surface_depth 'rendered' the halo lies on the render's fruit surface
-    and is not cleared."""
+    """multiple of a fruit's sphere radius, 0 (off) or >= 1. In every fused frame, after track_margin_m, a pixel of a
+    fruit with a sphere whose 3D point (placed with surface_depth) lies farther from the sphere's centre than this
+    multiple of its radius plus track_margin_m is not that fruit: it becomes background (semantic class 0, no fruit
+    id), unless a detector segment lying mostly on that fruit covers it (the detector, an independent witness on the
+    fused frames, shows the fruit there) and the point does not lie behind the sphere (more than radius +
+    track_margin_m beyond its centre along the pixel's ray: a detector mask reaching past the fruit's outline onto a
+    fruit further back is no witness there; a segment lying mostly behind the sphere is another fruit under this id
+    and keeps its pixels for detector_split_m). The render paints a fruit's silhouette wider than the fruit, over the
+    leaves and background behind it (the sensor measures them there), and paints a fruit that enters or leaves the
+    image in a recording's first or last frames with a neighbour's id; the spheres fitted to elongated fruits are
+    wider than the fruits, so the pixels cleared lie well beyond the fruit. A fruit whose rendered surface lies off
+    the sensor's by more than the rule tolerates beyond the sphere ((this multiple - 1) x radius + track_margin_m, in
+    the median over the fruit's views) keeps its pixels: its sphere, fitted to the render, is no witness of where the
+    fruit is (the render can misplace a fruit that a window saw in few frames by several centimetres); border_band_px
+    then looks for its seen surface where the sensor puts it. Lower it (towards 1) to clear more of the halo, raise
+    it where fruits are far from round or the spheres are poor (a fruit's own pixels beyond its sphere are lost).
+    Needs spheres (track_margin_m > 0); with surface_depth 'rendered' the halo lies on the render's fruit surface and
+    is not cleared."""
     detector_fill: bool = True
     """in every fused frame, give a fruit the pixels of its detector segment that the render left as stuff or
     void and whose 3D point (placed with surface_depth) lies within the fruit's sphere (radius +
@@ -535,6 +537,15 @@ def relabel_by_surface(inst: np.ndarray, depth: np.ndarray, k: np.ndarray, c2w: 
     return int(move.sum())
 
 
+def beyond_centre(points: np.ndarray, eye: np.ndarray, centres: np.ndarray) -> np.ndarray:
+    """[N] how far each point [N, 3] lies along its ray from the camera centre `eye` [3] beyond the sphere
+    centre (`centres` [3] or [N, 3]) seen on that ray (m; negative in front of it). A fruit's seen surface
+    faces the camera: in front of its centre, or about level with it at the outline."""
+    ray = points - eye
+    dist = np.linalg.norm(ray, axis=1)
+    return dist - ((ray / dist[:, None]) * (centres - eye)).sum(axis=1)
+
+
 def fruit_segment_pairs(inst: np.ndarray, segments: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(fruit ids, segment ids) of the (fruit, detector segment) pairs sharing pixels (`inst` [H, W] fruit ids,
     `segments` [H, W] ids, 0 = none), the pair sharing the most pixels first (ties: smaller fruit id, then
@@ -563,8 +574,12 @@ def clear_off_sphere(inst: np.ndarray, segments: np.ndarray | None, depth: np.nd
     """Clear each pixel of a fused frame (`inst` [H, W] fruit ids, changed in place) whose fruit has a sphere
     and whose point (z-depth `depth` in m, intrinsics k = (fx, fy, cx, cy), pose c2w) lies farther than
     factor x radius + margin_m from that sphere's centre, unless a detector segment (`segments` [H, W] ids,
-    0 = none; None = no detector output) whose fruit pixels are mostly this fruit's covers it. Fruits without
-    a sphere keep their pixels. Returns the pixels cleared."""
+    0 = none; None = no detector output) whose fruit pixels are mostly this fruit's covers it and the point
+    does not lie behind the sphere (more than radius + margin_m beyond its centre along the pixel's ray): a
+    detector mask reaching past its fruit's outline onto a fruit or leaf further back does not keep those
+    pixels on its fruit. A segment most of whose covered pixels lie behind the sphere keeps them all: it is
+    another fruit the render painted with this fruit's id, which the detector split (detector_split_m) gives
+    an id of its own. Fruits without a sphere keep their pixels. Returns the pixels cleared."""
     if factor <= 0 or not spheres:
         return 0
     ids, centres, radii = sphere_arrays(spheres)
@@ -580,7 +595,12 @@ def clear_off_sphere(inst: np.ndarray, segments: np.ndarray | None, depth: np.nd
     if segments is not None and off.any():
         sid = segments[v, u]
         owner = segment_owners(*fruit_segment_pairs(inst, segments), int(segments.max()) + 1)
-        off &= ~((sid > 0) & (owner[sid] == inst[v, u]))
+        vouched = (sid > 0) & (owner[sid] == inst[v, u])
+        behind = beyond_centre(p, c2w[:3, 3], centres[own]) > radii[own] + margin_m
+        # per segment, the share of the pixels it vouches for that lie behind their fruit's sphere
+        n = np.bincount(sid[vouched], minlength=len(owner))
+        share = np.bincount(sid[vouched], weights=behind[vouched], minlength=len(owner)) / np.maximum(n, 1)
+        off &= ~(vouched & (~behind | (share[sid] >= 0.5)))
     inst[v[off], u[off]] = 0
     return int(off.sum())
 
@@ -672,10 +692,7 @@ def fill_from_detector(inst: np.ndarray, segments: np.ndarray, depth: np.ndarray
         p = unproject(depth, k, c2w, v, u)
         rel = np.linalg.norm(p[:, None] - centres[None], axis=2) / radii
         own = int(np.searchsorted(ids, f))
-        # how far along its ray the point lies beyond the sphere's centre (the fruit's seen surface is in front)
-        ray = p - c2w[:3, 3]
-        dist = np.linalg.norm(ray, axis=1)
-        past = dist - (ray / dist[:, None]) @ (centres[own] - c2w[:3, 3])
+        past = beyond_centre(p, c2w[:3, 3], centres[own])
         ok = (rel[:, own] <= 1.0 + margin_m / radii[own]) & (past <= margin_m) & (rel.argmin(1) == own)
         inst[v[ok], u[ok]] = f
         filled += int(ok.sum())

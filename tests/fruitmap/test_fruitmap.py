@@ -314,14 +314,19 @@ def test_fruit_pixels_far_off_their_fruits_sphere_are_cleared_unless_the_detecto
     assert cleared == halo.sum() + piece.sum()
     assert (inst[halo | piece] == 0).all() and (inst[who == 0] == 1).all()
     assert (inst[(who == 1) & ~piece] == 2).all()
-    # a detector segment lying mostly on fruit 1 keeps the pixels it covers; one lying mostly on fruit 2 does not
+    # a detector segment lying mostly on fruit 1 keeps the pixels it covers where their points do not lie behind
+    # the sphere (here the sensor measures something in front of its centre: 5 cm nearer); one lying mostly on
+    # fruit 2 does not
     inst = truth.copy()
     inst[halo] = 1
     kept, lost = halo & (rows < 30), halo & (rows >= 36)
+    depth = np.where(kept, 0.45, depth)
     segments = np.zeros(inst.shape, np.int32)
     segments[(who == 0) | kept] = 3
     segments[(who == 1) | lost] = 4
     assert kept.sum() > 10 and 0 < lost.sum() < (who == 1).sum()
+    alone = inst.copy()
+    assert panoptic_fusion.clear_off_sphere(alone, None, depth, k, np.eye(4), spheres, 0.01, 1.25) == halo.sum()
     cleared = panoptic_fusion.clear_off_sphere(inst, segments, depth, k, np.eye(4), spheres, 0.01, 1.25)
     assert cleared == halo.sum() - kept.sum()
     assert (inst[kept] == 1).all() and (inst[halo & ~kept] == 0).all() and (inst[who >= 0] == truth[who >= 0]).all()
@@ -338,6 +343,44 @@ def test_fruit_pixels_far_off_their_fruits_sphere_are_cleared_unless_the_detecto
     for bad in (0.5, -1.0):
         with pytest.raises(ValueError, match="off_sphere_factor"):
             panoptic_fusion.Config(off_sphere_factor=bad)
+
+
+def test_a_detector_mask_reaching_onto_a_fruit_behind_keeps_no_pixels_there_unless_it_lies_behind_as_a_whole():
+    k = np.array([100.0, 100.0, 40.0, 30.0])
+    front, back = (np.array([0.0, 0.0, 0.5]), 0.03), (np.array([0.05, 0.0, 0.62]), 0.035)
+    depth, who = sphere_depth(k, (60, 80), [front, back], background_m=2.0)
+    spheres = {1: front, 2: back}
+    # the render paints the visible part of the fruit behind with the front fruit's id
+    hidden = who == 1
+    assert hidden.sum() > 40
+    z = depth[hidden]
+    v, u = np.nonzero(hidden)
+    p = np.stack([(u + 0.5 - k[2]) / k[0] * z, (v + 0.5 - k[3]) / k[1] * z, z], 1)
+    past = panoptic_fusion.beyond_centre(p, np.zeros(3), front[0])
+    assert (past > front[1] + 0.01).all()                 # all of it lies behind the front fruit's sphere
+    painted = np.where(who >= 0, 1, 0).astype(np.uint16)
+    # one detector mask over the front fruit that reaches onto the fruit behind: those pixels are cleared
+    inst = painted.copy()
+    segments = np.where(who >= 0, 5, 0).astype(np.int32)
+    assert (who == 0).sum() > hidden.sum()                # the mask lies mostly on the front fruit
+    cleared = panoptic_fusion.clear_off_sphere(inst, segments, depth, k, np.eye(4), spheres, 0.01, 1.25)
+    assert cleared == hidden.sum() and (inst[hidden] == 0).all() and (inst[who == 0] == 1).all()
+    # a mask of the fruit behind alone lies behind the front fruit's sphere as a whole: another fruit under
+    # this id (the detector split gives it its own); it keeps its pixels
+    inst = painted.copy()
+    segments = np.where(who == 0, 5, np.where(hidden, 6, 0)).astype(np.int32)
+    assert panoptic_fusion.clear_off_sphere(inst, segments, depth, k, np.eye(4), spheres, 0.01, 1.25) == 0
+    assert (inst == painted).all()
+    # beside the sphere but not behind it (a halo in the sphere's depth range), the mask keeps its pixels
+    rows, cols = np.mgrid[0:60, 0:80]
+    beside = (who == -1) & (np.abs(rows - 30) < 2) & (cols >= 25) & (cols < 29)
+    flat = np.where(beside, 0.5, depth)
+    inst = painted.copy()
+    inst[beside] = 1
+    segments = np.where((who == 0) | beside, 5, 0).astype(np.int32)
+    assert beside.sum() > 4
+    cleared = panoptic_fusion.clear_off_sphere(inst, segments, flat, k, np.eye(4), spheres, 0.01, 1.25)
+    assert (inst[beside] == 1).all() and cleared == hidden.sum()
 
 
 def test_a_fruit_whose_render_lies_off_the_sensors_surface_is_judged_where_the_sensor_sees_it(tmp_path):
