@@ -119,17 +119,17 @@ class Config:
     fused frames, shows the fruit there) and the point does not lie behind the sphere (more than radius +
     track_margin_m beyond its centre along the pixel's ray: a detector mask reaching past the fruit's outline onto a
     fruit further back is no witness there; a segment lying mostly behind the sphere is another fruit under this id
-    and keeps its pixels for detector_split_m). The render paints a fruit's silhouette wider than the fruit, over the
-    leaves and background behind it (the sensor measures them there), and paints a fruit that enters or leaves the
-    image in a recording's first or last frames with a neighbour's id; the spheres fitted to elongated fruits are
-    wider than the fruits, so the pixels cleared lie well beyond the fruit. A fruit whose rendered surface lies off
-    the sensor's by more than the rule tolerates beyond the sphere ((this multiple - 1) x radius + track_margin_m, in
-    the median over the fruit's views) keeps its pixels: its sphere, fitted to the render, is no witness of where the
-    fruit is (the render can misplace a fruit that a window saw in few frames by several centimetres); border_band_px
-    then looks for its seen surface where the sensor puts it. Lower it (towards 1) to clear more of the halo, raise
-    it where fruits are far from round or the spheres are poor (a fruit's own pixels beyond its sphere are lost).
-    Needs spheres (track_margin_m > 0); with surface_depth 'rendered' the halo lies on the render's fruit surface and
-    is not cleared."""
+    and keeps its pixels for detector_split_m where they are at least min_group_px). The render paints a fruit's
+    silhouette wider than the fruit, over the leaves and background behind it (the sensor measures them there), and
+    paints a fruit that enters or leaves the image in a recording's first or last frames with a neighbour's id; the
+    spheres fitted to elongated fruits are wider than the fruits, so the pixels cleared lie well beyond the fruit. A
+    fruit whose rendered surface lies off the sensor's by more than the rule tolerates beyond the sphere ((this
+    multiple - 1) x radius + track_margin_m, in the median over the fruit's views) keeps its pixels: its sphere,
+    fitted to the render, is no witness of where the fruit is (the render can misplace a fruit that a window saw in
+    few frames by several centimetres); border_band_px then looks for its seen surface where the sensor puts it.
+    Lower it (towards 1) to clear more of the halo, raise it where fruits are far from round or the spheres are poor
+    (a fruit's own pixels beyond its sphere are lost). Needs spheres (track_margin_m > 0); with surface_depth
+    'rendered' the halo lies on the render's fruit surface and is not cleared."""
     detector_fill: bool = True
     """in every fused frame, give a fruit the pixels of its detector segment that the render left as stuff or
     void and whose 3D point (placed with surface_depth) lies within the fruit's sphere (radius +
@@ -570,16 +570,17 @@ def segment_owners(fruit: np.ndarray, seg: np.ndarray, n_segments: int) -> np.nd
 
 def clear_off_sphere(inst: np.ndarray, segments: np.ndarray | None, depth: np.ndarray, k: np.ndarray,
                      c2w: np.ndarray, spheres: dict[int, tuple[np.ndarray, float]], margin_m: float,
-                     factor: float) -> int:
+                     factor: float, split_min_px: int = 0) -> int:
     """Clear each pixel of a fused frame (`inst` [H, W] fruit ids, changed in place) whose fruit has a sphere
     and whose point (z-depth `depth` in m, intrinsics k = (fx, fy, cx, cy), pose c2w) lies farther than
     factor x radius + margin_m from that sphere's centre, unless a detector segment (`segments` [H, W] ids,
     0 = none; None = no detector output) whose fruit pixels are mostly this fruit's covers it and the point
     does not lie behind the sphere (more than radius + margin_m beyond its centre along the pixel's ray): a
     detector mask reaching past its fruit's outline onto a fruit or leaf further back does not keep those
-    pixels on its fruit. A segment most of whose covered pixels lie behind the sphere keeps them all: it is
-    another fruit the render painted with this fruit's id, which the detector split (detector_split_m) gives
-    an id of its own. Fruits without a sphere keep their pixels. Returns the pixels cleared."""
+    pixels on its fruit. A segment most of whose covered pixels lie behind the sphere is another fruit the
+    render painted with this fruit's id: it keeps them all where the detector split can give them an id of
+    their own (at least split_min_px of them, its min_px; 0 = no split). Fruits without a sphere keep their
+    pixels. Returns the pixels cleared."""
     if factor <= 0 or not spheres:
         return 0
     ids, centres, radii = sphere_arrays(spheres)
@@ -597,10 +598,11 @@ def clear_off_sphere(inst: np.ndarray, segments: np.ndarray | None, depth: np.nd
         owner = segment_owners(*fruit_segment_pairs(inst, segments), int(segments.max()) + 1)
         vouched = (sid > 0) & (owner[sid] == inst[v, u])
         behind = beyond_centre(p, c2w[:3, 3], centres[own]) > radii[own] + margin_m
-        # per segment, the share of the pixels it vouches for that lie behind their fruit's sphere
+        # per segment, the pixels it vouches for and the share of them that lie behind their fruit's sphere
         n = np.bincount(sid[vouched], minlength=len(owner))
         share = np.bincount(sid[vouched], weights=behind[vouched], minlength=len(owner)) / np.maximum(n, 1)
-        off &= ~(vouched & (~behind | (share[sid] >= 0.5)))
+        whole = (share >= 0.5) & (n >= split_min_px) & (split_min_px > 0)   # another fruit, left for the split
+        off &= ~(vouched & (~behind | whole[sid]))
     inst[v[off], u[off]] = 0
     return int(off.sum())
 
@@ -711,7 +713,8 @@ def surface_rules(inst: np.ndarray, segments: np.ndarray | None, depth: np.ndarr
     if moved:
         ctx.count("pixels_moved_to_their_surface", moved)
     judged = {f: ball for f, ball in spheres.items() if f not in off_sensor}
-    cleared = clear_off_sphere(inst, segments, depth, k, c2w, judged, cfg.track_margin_m, cfg.off_sphere_factor)
+    cleared = clear_off_sphere(inst, segments, depth, k, c2w, judged, cfg.track_margin_m, cfg.off_sphere_factor,
+                               cfg.min_group_px if cfg.detector_split_m > 0 else 0)
     if cleared:
         ctx.count("pixels_cleared_off_their_sphere", cleared)
     if cfg.detector_fill and segments is not None:

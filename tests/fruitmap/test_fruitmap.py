@@ -366,11 +366,17 @@ def test_a_detector_mask_reaching_onto_a_fruit_behind_keeps_no_pixels_there_unle
     cleared = panoptic_fusion.clear_off_sphere(inst, segments, depth, k, np.eye(4), spheres, 0.01, 1.25)
     assert cleared == hidden.sum() and (inst[hidden] == 0).all() and (inst[who == 0] == 1).all()
     # a mask of the fruit behind alone lies behind the front fruit's sphere as a whole: another fruit under
-    # this id (the detector split gives it its own); it keeps its pixels
+    # this id, which keeps its pixels where the detector split can take them (at least its min_px)
     inst = painted.copy()
     segments = np.where(who == 0, 5, np.where(hidden, 6, 0)).astype(np.int32)
-    assert panoptic_fusion.clear_off_sphere(inst, segments, depth, k, np.eye(4), spheres, 0.01, 1.25) == 0
+    n = int(hidden.sum())
+    assert panoptic_fusion.clear_off_sphere(inst, segments, depth, k, np.eye(4), spheres, 0.01, 1.25, n) == 0
     assert (inst == painted).all()
+    for too_few in (n + 1, 0):        # fewer pixels than the split takes; no split
+        assert panoptic_fusion.clear_off_sphere(inst, segments, depth, k, np.eye(4), spheres, 0.01, 1.25,
+                                                too_few) == n
+        assert (inst[hidden] == 0).all() and (inst[who == 0] == 1).all()
+        inst = painted.copy()
     # beside the sphere but not behind it (a halo in the sphere's depth range), the mask keeps its pixels
     rows, cols = np.mgrid[0:60, 0:80]
     beside = (who == -1) & (np.abs(rows - 30) < 2) & (cols >= 25) & (cols < 29)
@@ -379,7 +385,7 @@ def test_a_detector_mask_reaching_onto_a_fruit_behind_keeps_no_pixels_there_unle
     inst[beside] = 1
     segments = np.where((who == 0) | beside, 5, 0).astype(np.int32)
     assert beside.sum() > 4
-    cleared = panoptic_fusion.clear_off_sphere(inst, segments, flat, k, np.eye(4), spheres, 0.01, 1.25)
+    cleared = panoptic_fusion.clear_off_sphere(inst, segments, flat, k, np.eye(4), spheres, 0.01, 1.25, 50)
     assert (inst[beside] == 1).all() and cleared == hidden.sum()
 
 
