@@ -171,7 +171,9 @@ class Config:
     another joins an existing fruit at its place (centres within max_match_distance_m, or one inside the
     other's sphere) or becomes a new fruit (ids after those of the row). In each frame a cluster's segments
     go to it and the fruit's other pixels to the cluster whose sphere they lie deepest in (track_margin_m and
-    detector_fill then run again with those spheres). About the largest shift of a fruit's seen-surface centre
+    detector_fill then run again with those spheres); where a cluster has no plausible sphere, to the cluster
+    whose seen surface (its segments' points) lies nearest, a cluster without a segment in the frame taking
+    only those within track_margin_m of its surface. About the largest shift of a fruit's seen-surface centre
     between two neighbouring frames (it moves as the fruit enters the view or hides behind a leaf), well under
     the distance of two touching fruits' centres. Needs detector output."""
     compose_shared_frames: bool = True
@@ -806,26 +808,36 @@ def detector_clusters(views: list[tuple], link_m: float, min_frames: int,
 
 
 def split_by_detector(inst: np.ndarray, segments: np.ndarray, depth: np.ndarray, k: np.ndarray, c2w: np.ndarray,
-                      fruit: int, ids: list[int], spheres: list[tuple[np.ndarray, float]],
-                      seg_cluster: dict[int, int], min_px: int) -> int:
+                      fruit: int, ids: list[int], spheres: list[tuple[np.ndarray, float]] | None,
+                      seg_cluster: dict[int, int], min_px: int, surfaces: list[cKDTree] | None = None,
+                      margin_m: float = 0.0) -> int:
     """Hand a fused fruit's pixels of one frame (`inst`, changed in place) to the fruits it holds: the pixels of
-    a detector segment of a cluster (`seg_cluster`: segment id -> index into `ids` and `spheres`) go to that
-    cluster's id, its other pixels with a depth to the id of the sphere (centre, radius) they lie deepest in
-    (distance / radius). A cluster without a segment in the frame that would get fewer than min_px pixels
-    leaves them to the first (stray pixels near a fruit that is not in view). Returns the pixels moved."""
+    a detector segment of a cluster (`seg_cluster`: segment id -> index into `ids`) go to that cluster's id,
+    its other pixels with a depth to the id of the sphere (centre, radius; `spheres`) they lie deepest in
+    (distance / radius), and a cluster without a segment in the frame that would get fewer than min_px pixels
+    leaves them to the first (stray pixels near a fruit that is not in view). Without spheres (`spheres`
+    None), the other pixels go to the cluster whose seen surface (`surfaces`: k-d trees of its segments'
+    points) lies nearest, and a cluster without a segment in the frame takes only those within margin_m of
+    its surface: the sliver of a fruit entering the view before the detector shows it. Returns the pixels
+    moved."""
     mine = inst == fruit
     target = np.full(inst.shape, -1)
     for sid, j in seg_cluster.items():
         target[mine & (segments == sid)] = j
     v, u = np.nonzero(mine & (target < 0) & (depth > 0))
-    if len(v):
+    shown = set(seg_cluster.values())
+    if len(v) and spheres is None:
+        gap = np.stack([tree.query(unproject(depth, k, c2w, v, u))[0] for tree in surfaces], axis=1)
+        near = gap.argmin(1)
+        near[~np.isin(near, list(shown)) & (gap[np.arange(len(v)), near] > margin_m)] = 0
+        target[v, u] = near
+    elif len(v):
         p = unproject(depth, k, c2w, v, u)
         centres = np.stack([c for c, _ in spheres])
         radii = np.array([r for _, r in spheres])
         target[v, u] = (np.linalg.norm(p[:, None] - centres[None], axis=2) / radii).argmin(1)
-    shown = set(seg_cluster.values())
     for j in range(1, len(ids)):
-        if j not in shown and np.count_nonzero(target == j) < min_px:
+        if spheres is not None and j not in shown and np.count_nonzero(target == j) < min_px:
             target[target == j] = 0
     new = np.where(target >= 0, np.asarray(ids)[np.maximum(target, 0)], inst)
     moved = int(np.count_nonzero(mine & (new != fruit)))
@@ -953,9 +965,11 @@ def split_fruits(seg_views: dict, in_frame: dict[int, set[int]], depth_file: dic
                     seen = np.concatenate([v[4] for v, lab in zip(views, labels) if lab == j])
                     cloud_of.pop(g, None)
                     cloud_of.update(seen_surfaces({g: seen}, {g: ball}, cfg))
-        else:  # the nearest seen-surface centre
-            balls = [(c, 1.0) for c in centres]
-        plans[f] = (ids, balls, seg_cluster)
+            surfaces = None
+        else:  # the nearest seen surface: the points of each cluster's segments
+            balls, surfaces = None, [cKDTree(np.concatenate([v[4] for v, lab in zip(views, labels) if lab == j]))
+                                     for j in range(len(centres))]
+        plans[f] = (ids, balls, seg_cluster, surfaces)
         ctx.count("fruits_split_by_detector")
     if not plans:
         return n_fruits
@@ -977,9 +991,9 @@ def split_fruits(seg_views: dict, in_frame: dict[int, set[int]], depth_file: dic
         c2w = cams[fid]
         before = inst.copy()
         for f in sorted(in_frame[fid] & split):
-            ids, balls, seg_cluster = plans[f]
+            ids, balls, seg_cluster, surfaces = plans[f]
             moved = split_by_detector(inst, segments, depth, k, c2w, f, ids, balls, seg_cluster.get(fid, {}),
-                                      cfg.min_group_px)
+                                      cfg.min_group_px, surfaces, cfg.track_margin_m)
             ctx.count("pixels_moved_by_detector_split", moved)
         if sphere_of:   # with the clusters' spheres: pieces without a sphere of their own join them
             surface_rules(inst, segments, depth, k, c2w, sphere_of, cloud_of, off_sensor, cfg, ctx)

@@ -9,6 +9,7 @@ import numpy as np
 import pandas as pd
 import pyarrow.parquet as pq
 import pytest
+from scipy.spatial import cKDTree
 
 from nerf.geometry import pose_txyzq
 from pipeline import cli
@@ -636,6 +637,26 @@ def test_a_fused_fruit_split_by_the_detector_hands_its_pixels_to_the_fruits_it_h
     inst[(who == 1) & ~few] = 0
     assert panoptic_fusion.split_by_detector(inst, only_a, depth, k, np.eye(4), 4, [4, 12], [a, b], {8: 0},
                                              min_px=10) == 0
+    # without spheres (a cluster without a plausible fit) the pixels go to the nearest seen surface (the points
+    # of each cluster's segments); a cluster without a segment in the frame takes only those on its surface
+    v, u = np.nonzero(who >= 0)
+    pts = panoptic_fusion.unproject(depth, k, np.eye(4), v, u)
+    on_a, on_b = who[v, u] == 0, who[v, u] == 1
+    surfaces = [cKDTree(pts[on_a]), cKDTree(pts[on_b])]
+    inst = np.where(who >= 0, 4, 0).astype(np.uint16)
+    moved = panoptic_fusion.split_by_detector(inst, segments, depth, k, np.eye(4), 4, [4, 12], None, {8: 0, 9: 1},
+                                              10, surfaces, 0.01)
+    assert moved == (who == 1).sum() and (inst[who == 0] == 4).all() and (inst[who == 1] == 12).all()
+    seen_b = on_b & (u < 48)                       # b seen so far: its left part only
+    surfaces = [cKDTree(pts[on_a]), cKDTree(pts[seen_b])]
+    gap = surfaces[1].query(pts)[0]
+    near_b = on_b & (gap <= 0.01)
+    assert near_b.sum() > seen_b.sum() and (on_b & ~near_b).sum() > 10
+    inst = np.where(who >= 0, 4, 0).astype(np.uint16)
+    moved = panoptic_fusion.split_by_detector(inst, only_a, depth, k, np.eye(4), 4, [4, 12], None, {8: 0},
+                                              10, surfaces, 0.01)
+    assert moved == near_b.sum() and (inst[v[near_b], u[near_b]] == 12).all()
+    assert (inst[v[~near_b], u[~near_b]] == 4).all()
 
 
 def test_split_fruits_rewrites_the_fused_frames_of_a_fruit_painted_over_two(tmp_path):
