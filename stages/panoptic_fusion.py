@@ -829,16 +829,16 @@ def split_by_detector(inst: np.ndarray, segments: np.ndarray, depth: np.ndarray,
     if len(v) and spheres is None:
         gap = np.stack([tree.query(unproject(depth, k, c2w, v, u))[0] for tree in surfaces], axis=1)
         near = gap.argmin(1)
-        near[~np.isin(near, list(shown)) & (gap[np.arange(len(v)), near] > margin_m)] = 0
+        near[~np.isin(near, list(shown)) & (gap.min(1) > margin_m)] = 0
         target[v, u] = near
     elif len(v):
         p = unproject(depth, k, c2w, v, u)
         centres = np.stack([c for c, _ in spheres])
         radii = np.array([r for _, r in spheres])
         target[v, u] = (np.linalg.norm(p[:, None] - centres[None], axis=2) / radii).argmin(1)
-    for j in range(1, len(ids)):
-        if spheres is not None and j not in shown and np.count_nonzero(target == j) < min_px:
-            target[target == j] = 0
+        for j in range(1, len(ids)):
+            if j not in shown and np.count_nonzero(target == j) < min_px:
+                target[target == j] = 0
     new = np.where(target >= 0, np.asarray(ids)[np.maximum(target, 0)], inst)
     moved = int(np.count_nonzero(mine & (new != fruit)))
     inst[mine] = new[mine]
@@ -937,8 +937,8 @@ def split_fruits(seg_views: dict, in_frame: dict[int, set[int]], depth_file: dic
             lambda c: None if ball is None else float(np.linalg.norm(c - ball[0])) > ball[1] + cfg.track_margin_m)
         if not centres:
             continue
-        fits = [fruit_sphere(np.concatenate([v[4] for v, lab in zip(views, labels) if lab == j]),
-                             cfg.max_fruit_radius_m) for j in range(len(centres))]
+        seen = [np.concatenate([v[4] for v, lab in zip(views, labels) if lab == j]) for j in range(len(centres))]
+        fits = [fruit_sphere(pts, cfg.max_fruit_radius_m) for pts in seen]   # each cluster's segments' points
         ids = [f]
         for j in range(1, len(centres)):
             at = fits[j][0] if fits[j] is not None else centres[j]
@@ -962,13 +962,11 @@ def split_fruits(seg_views: dict, in_frame: dict[int, set[int]], depth_file: dic
                 if j == 0 or g not in spheres:   # a sphere for this fruit, new fruits and hosts without one
                     sphere_of[g] = ball
                     off_sensor.pop(g, None)   # fitted to its segments' sensor points
-                    seen = np.concatenate([v[4] for v, lab in zip(views, labels) if lab == j])
                     cloud_of.pop(g, None)
-                    cloud_of.update(seen_surfaces({g: seen}, {g: ball}, cfg))
+                    cloud_of.update(seen_surfaces({g: seen[j]}, {g: ball}, cfg))
             surfaces = None
         else:  # the nearest seen surface: the points of each cluster's segments
-            balls, surfaces = None, [cKDTree(np.concatenate([v[4] for v, lab in zip(views, labels) if lab == j]))
-                                     for j in range(len(centres))]
+            balls, surfaces = None, [cKDTree(pts) for pts in seen]
         plans[f] = (ids, balls, seg_cluster, surfaces)
         ctx.count("fruits_split_by_detector")
     if not plans:
