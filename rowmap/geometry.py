@@ -7,11 +7,12 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
+from scipy.optimize import least_squares
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 from nerf.geometry import align_similarity, pose_matrix, similarity_matrix
-from nerf.surfaces import fruit_sphere, robust_centre
+from nerf.surfaces import robust_centre
 from pipeline.images import ImageError, read_depth_m
 
 POSE_COLS = ("tx", "ty", "tz", "qx", "qy", "qz", "qw")
@@ -44,14 +45,26 @@ def window_alignments(window_poses: pd.DataFrame) -> dict[int, np.ndarray]:
     return out
 
 
-def surface_centre(points: np.ndarray, max_radius_m: float, min_points: int = 20,
-                   max_extent_ratio: float = 2.0) -> np.ndarray:
-    """Centre of a fruit from world points [N, 3] of its seen surface: the centre of a least-squares sphere
-    through the inliers of robust_centre where that fit is plausible (plausible_fit), else their median.
-    The median of a seen surface sits on the side facing the camera, so two windows that saw one fruit
-    from either side put medians several centimetres apart; the sphere centre does not move with the view."""
-    fit = fruit_sphere(points, max_radius_m, max_extent_ratio, min_points)
-    return fit[0] if fit is not None else robust_centre(points)[0]
+def sphere_behind(points: np.ndarray, eye: np.ndarray, radius: float, min_points: int = 4) -> np.ndarray | None:
+    """Centre [3] of the least-squares sphere of the given radius through the inliers of robust_centre of a
+    fruit's seen surface points [N, 3], started `radius` behind their median as seen from `eye` [3] (the mean
+    camera centre of the views that saw them). A free fit to a shallow or partial cap finds a sphere far
+    wider than the fruit (not plausible_fit); a sphere of the fruit's size still places the centre behind the
+    seen part, where the cap's curvature says it is, instead of on the side that faced the camera. None with
+    fewer than min_points (at least 4) inliers, a non-positive radius, or where the fit ends nearer the eye
+    than the median."""
+    med, keep = robust_centre(points)
+    inl = np.asarray(points[keep], np.float64)
+    ray = med - np.asarray(eye, np.float64)
+    if len(inl) < max(min_points, 4) or not radius > 0 or not np.linalg.norm(ray) > 0:
+        return None
+    ray /= np.linalg.norm(ray)
+
+    def resid(c: np.ndarray) -> np.ndarray:
+        return np.linalg.norm(inl - c, axis=1) - radius
+
+    c = least_squares(resid, med + radius * ray, loss="soft_l1", f_scale=0.1 * radius, max_nfev=50).x
+    return c if np.all(np.isfinite(c)) and (c - med) @ ray > 0 else None
 
 
 def subsample(n: int, cap: int) -> np.ndarray:

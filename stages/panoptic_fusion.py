@@ -21,7 +21,7 @@ from pipeline.classes import THING_IDS, VOID
 from pipeline.images import ImageError, read_label, write_png
 from pipeline.stage import StageContext
 from rowmap.detections import dropped_segments, fruit_segments
-from rowmap.geometry import (POSE_COLS, pixel_groups, runs_by_key, subsample, surface_centre, window_alignments,
+from rowmap.geometry import (POSE_COLS, pixel_groups, runs_by_key, sphere_behind, subsample, window_alignments,
                              with_sensor_depth)
 from rowmap.renders import PANOPTIC_KINDS, Renders, encode, read_depth
 
@@ -37,7 +37,9 @@ class Config:
     """metres, > 0. Two windows' slots are the same fruit only if their 3D centres are closer than this. About
     half a fruit's diameter: neighbouring fruits' centres lie farther apart, two windows' estimates of one
     fruit closer. Scale it with the crop's fruit size; raise it when the windows' poses disagree by more
-    than a few centimetres (window_alignment_max_m in the stage summary grows with such drift)."""
+    than a few centimetres (window_alignment_max_m in the stage summary grows with such drift). Two slots of
+    one window join one fruit only where they never share a frame and their centres lie this close: the
+    window lost the fruit (painted it as leaf for a few frames) and painted it again with another slot."""
     strong_mask_overlap: float = 0.8
     """share in [0, 1]. Two slots are the same fruit up to strong_match_distance_m apart when, on the frames
     both windows rendered, this share of the smaller mask lies inside the other (pooled over those frames;
@@ -50,8 +52,11 @@ class Config:
     max_match_distance_m = no relaxed gate). About one fruit diameter."""
     min_mask_iou: float = 0.3
     """IoU in [0, 1]: on frames both windows rendered, the two slots' masks must overlap at least this much
-    (pooled over those frames); slots neither window shows there are matched on distance alone. Raise it
-    when touching fruits get merged, lower it when one fruit keeps two ids across windows."""
+    (pooled over those frames); slots neither window shows there are matched on distance alone. A fruit
+    joined from three or more windows must meet it between every two of them (each window's slots of the
+    fruit pooled): a stray piece a third window matched, with no frame in common, does not join a fruit whose
+    mask it misses where the two windows both rendered. Raise it when touching fruits get merged, lower it
+    when one fruit keeps two ids across windows."""
     group_gap_m: float = 0.03
     """metres, >= 0. In each rendered frame, a slot's pixels are un-projected (rendered depth) and split into
     groups: neighbouring pixels stay together when their 3D points lie closer than this gap, so a depth jump
@@ -74,10 +79,12 @@ class Config:
     per-frame groups; a single frame's stray centre (a sliver at the image border, un-projected onto what
     lies behind it) rejoins the slot's main cluster. 1 = every cluster is a fruit."""
     centre: Literal["sphere", "median"] = "sphere"
-    """a slot's 3D centre for the association: 'sphere' = centre of a sphere fitted to its seen surface
-    (median where no plausible fit), 'median' = median of the seen surface points (biased towards the
-    cameras that saw it, so windows that saw a fruit from opposite sides disagree by centimetres). Use
-    'median' for crops whose fruits are far from round."""
+    """a slot's 3D centre for the association: 'sphere' = centre of a sphere fitted to its seen surface;
+    where that fit is not plausible (a shallow or partial cap fits a sphere far wider than the fruit), the
+    centre of a sphere with the median radius of the row's plausible fits, placed behind the seen part as its
+    cameras saw it (the median where that fails too); 'median' = median of the seen surface points (biased
+    towards the cameras that saw it, so windows that saw a fruit from opposite sides disagree by
+    centimetres). Use 'median' for crops whose fruits are far from round."""
     max_fruit_radius_m: float = 0.07
     """metres, > 0: a sphere fit with a larger radius is not a fruit (a flat patch, or pieces of several fruits
     one slot painted) and the median is used; such a fruit gets no sphere for track_margin_m either, so it
@@ -270,6 +277,8 @@ class SlotView:
     sensor_offset: np.ndarray | None = None
     """[3] median of (point placed with the sensor depth - point placed with the rendered one) over the same
     pixels (at most max_points_per_view of them); None without a sensor depth"""
+    eye: np.ndarray | None = None
+    """[3] the camera centre of the frame (row frame)"""
 
 
 @dataclass
@@ -362,8 +371,9 @@ def pair_cost(a: LocalFruit, b: LocalFruit, masks: dict[tuple[int, int], np.ndar
 
 def associate(fruits: list[LocalFruit], masks: dict[tuple[int, int], np.ndarray], cfg: Config) -> list[list[int]]:
     """Groups of local-fruit indices that are one fruit. Per window pair a Hungarian assignment on
-    `pair_cost`; accepted pairs are then merged cheapest first (union-find) unless the merge would put
-    two local fruits of the same window into one fruit."""
+    `pair_cost`; accepted pairs are then merged cheapest first (union-find) unless the merge would put two
+    local fruits of one window that share a frame, or lie farther apart than cfg.max_match_distance_m, into
+    one fruit, or would join windows whose masks of the fruit overlap under cfg.min_mask_iou."""
     by_window: dict[int, list[int]] = defaultdict(list)
     for i, lf in enumerate(fruits):
         if lf.centre is not None:
@@ -394,8 +404,31 @@ def associate(fruits: list[LocalFruit], masks: dict[tuple[int, int], np.ndarray]
                 continue
             rows, cols = linear_sum_assignment(np.where(finite, cost, 1e6))  # large finite, never inf
             edges += [(float(cost[r, c]), ia[r], ib[c]) for r, c in zip(rows, cols) if finite[r, c]]
+    by_frame: dict[int, list[int]] = defaultdict(list)
+    for w, f in masks:
+        by_frame[f].append(w)
+    both_rendered: dict[tuple[int, int], list[int]] = defaultdict(list)  # (window, window) -> frames
+    for f, ws in by_frame.items():
+        ws = sorted(ws)
+        for a_i, wa in enumerate(ws):
+            for wb in ws[a_i + 1:]:
+                both_rendered[(wa, wb)].append(f)
+    overlaps: dict[tuple[int, int, int], list[tuple[int, int, int]]] = {}
+
+    def frame_overlap(wa: int, wb: int, f: int) -> list[tuple[int, int, int]]:
+        """(code in window wa, code in window wb, pixels) over frame f's pixels where either mask has a slot,
+        counted once per window pair and frame (0 = no slot there)."""
+        if (wa, wb, f) not in overlaps:
+            a, b = masks[(wa, f)].ravel(), masks[(wb, f)].ravel()
+            on = (a != 0) | (b != 0)
+            packed = (a[on].astype(np.int64) << 32) | (b[on].astype(np.int64) & 0xFFFFFFFF)
+            keys, n = np.unique(packed, return_counts=True)
+            overlaps[(wa, wb, f)] = list(zip((keys >> 32).tolist(), (keys & 0xFFFFFFFF).tolist(), n.tolist()))
+        return overlaps[(wa, wb, f)]
+
     parent = list(range(len(fruits)))
-    members_w = [{lf.window_id} for lf in fruits]
+    members = [[i] for i in range(len(fruits))]
+    frame_sets = [{f for f, _ in lf.frames} for lf in fruits]
 
     def find(i: int) -> int:
         while parent[i] != i:
@@ -403,11 +436,44 @@ def associate(fruits: list[LocalFruit], masks: dict[tuple[int, int], np.ndarray]
             i = parent[i]
         return i
 
+    def compatible(ri: int, rj: int) -> bool:
+        """Two groups may merge where every two of their local fruits from one window are slots of one fruit in
+        turn (never in the same frame, and within cfg.max_match_distance_m of each other) and where, on every
+        frame two of the merged group's windows both rendered, their masks overlap (group_iou)."""
+        for i in members[ri]:
+            for j in members[rj]:
+                if fruits[i].window_id == fruits[j].window_id and (
+                        frame_sets[i] & frame_sets[j]
+                        or centre_distance(fruits[i], fruits[j]) > cfg.max_match_distance_m):
+                    return False
+        return group_iou(members[ri] + members[rj]) >= cfg.min_mask_iou
+
+    def group_iou(idx: list[int]) -> float:
+        """Smallest mask IoU, over the pairs of windows in fruits[idx], of the windows' masks of those fruits
+        pooled over the frames both windows rendered (1 where no pair shares a frame)."""
+        codes: dict[int, dict[int, set[int]]] = defaultdict(lambda: defaultdict(set))
+        for i in idx:
+            for f, g in fruits[i].frames:
+                codes[fruits[i].window_id][f].add(int(code(fruits[i].slot, g)))
+        wins, worst = sorted(codes), 1.0
+        for a_i, wa in enumerate(wins):
+            for wb in wins[a_i + 1:]:
+                inter = union = 0
+                for f in both_rendered.get((wa, wb), ()):
+                    ca, cb = codes[wa].get(f, set()), codes[wb].get(f, set())
+                    for x, y, n in frame_overlap(wa, wb, f):
+                        if x in ca or y in cb:
+                            union += n
+                            inter += n if (x in ca and y in cb) else 0
+                if union:
+                    worst = min(worst, inter / union)
+        return worst
+
     for _, i, j in sorted(edges):
         ri, rj = find(i), find(j)
-        if ri != rj and not (members_w[ri] & members_w[rj]):
+        if ri != rj and compatible(ri, rj):
             parent[rj] = ri
-            members_w[ri] |= members_w[rj]
+            members[ri] += members[rj]
     groups: dict[int, list[int]] = defaultdict(list)
     for i, lf in enumerate(fruits):
         if lf.centre is not None:
@@ -1071,7 +1137,8 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
                         gap = float(np.median(depth[vb, ub] - sensor[vb, ub]))
                         sel = subsample(len(vb), cfg.max_points_per_view)   # their rendered points are in pts
                         offset = np.median(unproject(sensor, k, r.c2w, vb[sel], ub[sel]) - pts[both[good]][sel], 0)
-                slot_views[(wid, int(ids[s0]))][(fid, g)] = SlotView(int(mine.sum()), cls, pts_g, gap, offset)
+                slot_views[(wid, int(ids[s0]))][(fid, g)] = SlotView(int(mine.sum()), cls, pts_g, gap, offset,
+                                                                     r.c2w[:3, 3])
         if fid in shared_frames:
             masks[(wid, fid)] = np.where(thing, code(inst, group), 0).astype(np.int32)
         flat = np.flatnonzero(group)
@@ -1080,6 +1147,8 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
 
     # pass 2: window-local fruits (slots, split where the centres of their per-frame groups disagree)
     local: list[LocalFruit] = []
+    unfitted: list[tuple[LocalFruit, np.ndarray, np.ndarray]] = []  # (fruit, points, mean eye) without a sphere
+    radii: list[float] = []
     for (wid, slot), per_frame in sorted(slot_views.items()):
         centres = {f: (np.median(sv.points, 0) if len(sv.points) else None) for f, sv in per_frame.items()}
         parts = split_frames(centres, cfg.split_distance_m, cfg.min_split_frames)
@@ -1097,8 +1166,25 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
                 lf.drop_reason = "no pixel with valid rendered depth"
             else:
                 lf.median = robust_centre(pts)[0]
-                lf.centre = surface_centre(pts, cfg.max_fruit_radius_m) if cfg.centre == "sphere" else lf.median
+                lf.centre = lf.median
+                fit = fruit_sphere(pts, cfg.max_fruit_radius_m, min_points=20) if cfg.centre == "sphere" else None
+                if fit is not None:
+                    lf.centre = fit[0]
+                    radii.append(fit[1])
+                elif cfg.centre == "sphere":
+                    eye = np.average([sv.eye for sv in svs], 0, [len(sv.points) for sv in svs])
+                    unfitted.append((lf, pts, eye))
             local.append(lf)
+    # a slot whose free sphere fit fails (a shallow or partial cap) takes a sphere of the row's median fitted
+    # radius behind its seen part: its median lies on the side the window saw, centimetres from another
+    # window's view of the same fruit
+    if radii and unfitted:
+        r_row = float(np.median(radii))
+        for lf, pts, eye in unfitted:
+            c = sphere_behind(pts, eye, r_row, min_points=20)
+            if c is not None:
+                lf.centre = c
+                ctx.count("slots_centred_behind_their_surface")
 
     # pass 3: associate across windows; row-level ids increase along the row (x, then z; fruits split off by
     # detector_split_m follow)

@@ -12,12 +12,13 @@ import pytest
 from scipy.spatial import cKDTree
 
 from nerf.geometry import pose_txyzq
+from nerf.surfaces import fruit_sphere
 from pipeline import cli
 from pipeline.classes import THING_IDS
 from pipeline.images import ImageError, read_label
 from pipeline.stage import StageContext
 from rowmap.detections import dropped_segments, fruit_segments
-from rowmap.geometry import pixel_groups, runs_by_key, surface_centre, window_alignments, with_sensor_depth
+from rowmap.geometry import pixel_groups, runs_by_key, sphere_behind, window_alignments, with_sensor_depth
 from rowmap.renders import file_name
 from rowmap.scoring import reference_pixels
 from stages import evaluate, fruit_count, panoptic_fusion, report
@@ -131,7 +132,7 @@ def test_sphere_centre_does_not_move_with_the_side_a_fruit_is_seen_from():
     left, right = seen_from(np.radians(-130)), seen_from(np.radians(-50))
     assert np.linalg.norm(np.median(left, 0) - np.median(right, 0)) > 0.03
     for pts in (left, right):
-        assert np.linalg.norm(surface_centre(pts, 0.1) - centre) < 0.003
+        assert np.linalg.norm(fruit_sphere(pts, 0.1, min_points=20)[0] - centre) < 0.003
 
 
 def test_window_alignments_recover_each_windows_transform_from_a_straight_track():
@@ -480,6 +481,70 @@ def test_a_fruit_takes_the_pixels_of_its_detector_segment_that_lie_on_its_sphere
     assert panoptic_fusion.fill_from_detector(inst, segments, depth, k, np.eye(4), spheres, 0.0) == 0
     assert panoptic_fusion.fill_from_detector(inst, segments, depth, k, np.eye(4), {2: b}, 0.01) == right.sum()
     assert (inst[left] == 0).all()
+
+
+def masks_of(shape: tuple[int, int], painted: dict[tuple[int, int], list[tuple[int, slice]]]) -> dict:
+    """{(window, frame): slot-code image} with each listed (slot, column slice) painted over all rows."""
+    out = {}
+    for key, slots in painted.items():
+        m = np.zeros(shape, np.int32)
+        for slot, cols in slots:
+            m[:, cols] = panoptic_fusion.code(slot, 0)
+        out[key] = m
+    return out
+
+
+def test_a_window_that_paints_a_fruit_with_two_slots_in_turn_gives_it_one_id():
+    cfg = panoptic_fusion.Config()
+    lf = panoptic_fusion.LocalFruit
+    c, x3 = np.zeros(3), np.array([0.03, 0.0, 0.0])
+    a = lf(0, 1, 0, [(0, 0), (2, 0)], 50, 2, c)                 # window 0
+    b1 = lf(1, 5, 0, [(2, 0), (4, 0)], 50, 2, c)                # window 1, then it loses the fruit ...
+    b2 = lf(1, 6, 0, [(8, 0), (10, 0)], 50, 2, x3)              # ... and paints it with another slot
+    w2 = lf(2, 9, 0, [(8, 0), (10, 0), (12, 0)], 50, 2, x3)     # window 2
+    masks = masks_of((4, 8), {(0, 2): [(1, slice(0, 4))], (1, 2): [(5, slice(0, 4))],
+                              (1, 8): [(6, slice(2, 6))], (2, 8): [(9, slice(2, 6))],
+                              (1, 10): [(6, slice(2, 6))], (2, 10): [(9, slice(2, 6))]})
+    assert panoptic_fusion.pair_cost(b1, w2, masks, cfg) == np.inf  # window 1 shows it on slot 6 where 2 sees it
+    groups = sorted(sorted(g) for g in panoptic_fusion.associate([a, b1, b2, w2], masks, cfg))
+    assert groups == [[0, 1, 2, 3]]
+    # the two slots of window 1 in one frame are two fruits, and so are two slots of one window far apart
+    for b2_other in (lf(1, 6, 0, [(4, 0), (8, 0), (10, 0)], 50, 2, x3),
+                     lf(1, 6, 0, [(8, 0), (10, 0)], 50, 2, np.array([0.05, 0.0, 0.0]))):
+        w2_near = lf(2, 9, 0, [(8, 0), (10, 0), (12, 0)], 50, 2, b2_other.centre)
+        groups = sorted(sorted(g) for g in panoptic_fusion.associate([a, b1, b2_other, w2_near], masks, cfg))
+        assert groups == [[0, 1], [2, 3]]
+
+
+def test_fruits_whose_masks_disagree_on_a_shared_frame_never_join_one_id_through_a_third_window():
+    cfg = panoptic_fusion.Config()
+    lf = panoptic_fusion.LocalFruit
+    c = np.zeros(3)
+    main = lf(1, 2, 0, [(2, 0), (4, 0), (6, 0)], 900, 2, np.array([0.02, 0.0, 0.0]))  # window 1: the fruit
+    piece = lf(1, 3, 0, [(4, 0), (6, 0)], 60, 2, c + 0.004)                            # ... and a stray piece
+    w2 = lf(2, 7, 0, [(4, 0), (6, 0), (8, 0)], 900, 2, c)
+    w3 = lf(3, 8, 0, [(10, 0), (12, 0)], 900, 2, c)      # shares no frame with window 1
+    painted = [(2, slice(0, 4)), (3, slice(6, 8))]
+    masks = masks_of((4, 8), {(1, 4): painted, (1, 6): painted,
+                              (2, 4): [(7, slice(0, 3))], (2, 6): [(7, slice(0, 3))]})
+    assert panoptic_fusion.pair_cost(piece, w3, masks, cfg) < panoptic_fusion.pair_cost(main, w2, masks, cfg)
+    groups = sorted(sorted(g) for g in panoptic_fusion.associate([main, piece, w2, w3], masks, cfg))
+    assert groups == [[0, 2, 3], [1]]   # the piece's mask misses window 2's fruit, so it stays apart
+
+
+def test_a_sphere_of_the_fruits_size_puts_the_centre_behind_a_shallow_cap_seen_from_either_side():
+    rng = np.random.default_rng(4)
+    centre, r = np.array([1.0, 0.7, 0.8]), 0.04
+    d = rng.normal(size=(3000, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    for azimuth in (-120, -60):
+        view = np.array([np.cos(np.radians(azimuth)), np.sin(np.radians(azimuth)), 0.0])
+        cap = centre + r * d[d @ view > 0.8] + rng.normal(0, 0.002, (int(np.sum(d @ view > 0.8)), 3))
+        eye = centre + 0.6 * view
+        assert np.linalg.norm(np.median(cap, 0) - centre) > 0.03          # the median sits on the seen side
+        got = sphere_behind(cap, eye, 0.038)
+        assert got is not None and np.linalg.norm(got - centre) < 0.006
+        assert sphere_behind(cap, eye, 0.0) is None and sphere_behind(cap[:3], eye, 0.04) is None
 
 
 def front_cap(ball: tuple[np.ndarray, float], n: int = 6000, seed: int = 0) -> np.ndarray:
