@@ -373,7 +373,10 @@ def associate(fruits: list[LocalFruit], masks: dict[tuple[int, int], np.ndarray]
     """Groups of local-fruit indices that are one fruit. Per window pair a Hungarian assignment on
     `pair_cost`; accepted pairs are then merged cheapest first (union-find) unless the merge would put two
     local fruits of one window that share a frame, or lie farther apart than cfg.max_match_distance_m, into
-    one fruit, or would join windows whose masks of the fruit overlap under cfg.min_mask_iou."""
+    one fruit, or would join windows whose masks of the fruit overlap under cfg.min_mask_iou. A local fruit
+    left alone then joins the fruit of the other windows whose masks hold most of its pixels (on the frames
+    they share), where its centre lies within cfg.max_match_distance_m of that fruit's: a piece its window
+    painted with a second slot beside the one that holds the fruit."""
     by_window: dict[int, list[int]] = defaultdict(list)
     for i, lf in enumerate(fruits):
         if lf.centre is not None:
@@ -474,6 +477,37 @@ def associate(fruits: list[LocalFruit], masks: dict[tuple[int, int], np.ndarray]
         if ri != rj and compatible(ri, rj):
             parent[rj] = ri
             members[ri] += members[rj]
+    # a local fruit left alone whose mask lies mostly on one fruit of the other windows, within the gate of it,
+    # is a second slot its window painted on that fruit (a piece beside the slot that holds the fruit)
+    owner = {(lf.window_id, f, int(code(lf.slot, g))): k for k, lf in enumerate(fruits) for f, g in lf.frames}
+    for i, lf in enumerate(fruits):
+        if lf.centre is None or find(i) != i or len(members[i]) > 1:
+            continue
+        mine: dict[int, set[int]] = defaultdict(set)
+        for f, g in lf.frames:
+            mine[f].add(int(code(lf.slot, g)))
+        on: dict[int, int] = defaultdict(int)   # group root -> pixels of this fruit's mask on its masks
+        total = 0
+        for (wa, wb), fids in both_rendered.items():
+            if lf.window_id not in (wa, wb):
+                continue
+            other = wb if lf.window_id == wa else wa
+            for f in fids:
+                if f not in mine:
+                    continue
+                for x, y, n in frame_overlap(wa, wb, f):
+                    own, theirs = (x, y) if lf.window_id == wa else (y, x)
+                    if own in mine[f]:
+                        total += n
+                        k = owner.get((other, f, theirs))
+                        if k is not None and fruits[k].centre is not None:
+                            on[find(k)] += n
+        if not on:
+            continue
+        root, n_on = max(on.items(), key=lambda kv: kv[1])
+        if n_on >= total / 2 and min(centre_distance(lf, fruits[k]) for k in members[root]) <= cfg.max_match_distance_m:
+            parent[i] = root
+            members[root] += members[i]
     groups: dict[int, list[int]] = defaultdict(list)
     for i, lf in enumerate(fruits):
         if lf.centre is not None:

@@ -532,6 +532,24 @@ def test_fruits_whose_masks_disagree_on_a_shared_frame_never_join_one_id_through
     assert groups == [[0, 2, 3], [1]]   # the piece's mask misses window 2's fruit, so it stays apart
 
 
+def test_a_piece_a_window_painted_beside_a_fruits_slot_joins_that_fruit_where_the_other_window_holds_it():
+    cfg = panoptic_fusion.Config()
+    lf = panoptic_fusion.LocalFruit
+    main = lf(1, 2, 0, [(4, 0), (6, 0)], 400, 2, np.zeros(3))
+    piece = lf(1, 3, 0, [(4, 0), (6, 0)], 100, 2, np.array([0.01, 0.0, 0.0]))   # same frames: a second slot
+    other = lf(2, 7, 0, [(4, 0), (6, 0), (8, 0)], 700, 2, np.array([0.005, 0.0, 0.0]))
+    for reach, joins in ((7, True), (4, False)):   # window 2's mask of the fruit covers the piece, or not
+        masks = masks_of((4, 8), {(1, 4): [(2, slice(0, 4)), (3, slice(4, 6))],
+                                  (1, 6): [(2, slice(0, 4)), (3, slice(4, 6))],
+                                  (2, 4): [(7, slice(0, reach))], (2, 6): [(7, slice(0, reach))]})
+        groups = sorted(sorted(g) for g in panoptic_fusion.associate([main, piece, other], masks, cfg))
+        assert groups == ([[0, 1, 2]] if joins else [[0, 2], [1]])
+    far = lf(1, 3, 0, [(4, 0), (6, 0)], 100, 2, np.array([0.06, 0.0, 0.0]))   # beyond max_match_distance_m
+    masks = masks_of((4, 8), {(1, 4): [(2, slice(0, 4)), (3, slice(4, 6))], (2, 4): [(7, slice(0, 7))]})
+    groups = sorted(sorted(g) for g in panoptic_fusion.associate([main, far, other], masks, cfg))
+    assert groups == [[0, 2], [1]]
+
+
 def test_a_sphere_of_the_fruits_size_puts_the_centre_behind_a_shallow_cap_seen_from_either_side():
     rng = np.random.default_rng(4)
     centre, r = np.array([1.0, 0.7, 0.8]), 0.04
