@@ -431,7 +431,11 @@ def associate(fruits: list[LocalFruit], masks: dict[tuple[int, int], np.ndarray]
 
     parent = list(range(len(fruits)))
     members = [[i] for i in range(len(fruits))]
-    frame_sets = [{f for f, _ in lf.frames} for lf in fruits]
+    frame_codes: list[dict[int, set[int]]] = []   # per local fruit: frame -> its slot codes there (masks' values)
+    for lf in fruits:
+        frame_codes.append(defaultdict(set))
+        for f, g in lf.frames:
+            frame_codes[-1][f].add(int(code(lf.slot, g)))
 
     def find(i: int) -> int:
         while parent[i] != i:
@@ -446,7 +450,7 @@ def associate(fruits: list[LocalFruit], masks: dict[tuple[int, int], np.ndarray]
         for i in members[ri]:
             for j in members[rj]:
                 if fruits[i].window_id == fruits[j].window_id and (
-                        frame_sets[i] & frame_sets[j]
+                        frame_codes[i].keys() & frame_codes[j].keys()
                         or centre_distance(fruits[i], fruits[j]) > cfg.max_match_distance_m):
                     return False
         return group_iou(members[ri] + members[rj]) >= cfg.min_mask_iou
@@ -456,8 +460,8 @@ def associate(fruits: list[LocalFruit], masks: dict[tuple[int, int], np.ndarray]
         pooled over the frames both windows rendered (1 where no pair shares a frame)."""
         codes: dict[int, dict[int, set[int]]] = defaultdict(lambda: defaultdict(set))
         for i in idx:
-            for f, g in fruits[i].frames:
-                codes[fruits[i].window_id][f].add(int(code(fruits[i].slot, g)))
+            for f, cs in frame_codes[i].items():
+                codes[fruits[i].window_id][f] |= cs
         wins, worst = sorted(codes), 1.0
         for a_i, wa in enumerate(wins):
             for wb in wins[a_i + 1:]:
@@ -479,13 +483,11 @@ def associate(fruits: list[LocalFruit], masks: dict[tuple[int, int], np.ndarray]
             members[ri] += members[rj]
     # a local fruit left alone whose mask lies mostly on one fruit of the other windows, within the gate of it,
     # is a second slot its window painted on that fruit (a piece beside the slot that holds the fruit)
-    owner = {(lf.window_id, f, int(code(lf.slot, g))): k for k, lf in enumerate(fruits) for f, g in lf.frames}
+    owner = {(lf.window_id, f, c): k for k, lf in enumerate(fruits) for f, cs in frame_codes[k].items() for c in cs}
     for i, lf in enumerate(fruits):
         if lf.centre is None or find(i) != i or len(members[i]) > 1:
             continue
-        mine: dict[int, set[int]] = defaultdict(set)
-        for f, g in lf.frames:
-            mine[f].add(int(code(lf.slot, g)))
+        mine = frame_codes[i]
         on: dict[int, int] = defaultdict(int)   # group root -> pixels of this fruit's mask on its masks
         total = 0
         for (wa, wb), fids in both_rendered.items():
