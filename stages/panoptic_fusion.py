@@ -106,11 +106,14 @@ class Config:
     """metres, >= 0. Each fused fruit gets a sphere fitted to its seen surface over all its windows and frames
     (where the fit is plausible: max_fruit_radius_m). In every fused frame a fruit pixel whose 3D point
     (placed with surface_depth) lies outside the sphere of the fruit it was given, by more than this
-    margin, but inside another fruit's sphere (radius + margin) goes to that fruit: a slot that painted a
-    piece of a neighbour (a fruit entering or leaving the image, or one behind it) gives that piece back to
-    the fruit whose surface it is. A fruit without a plausible sphere (too few points, or pieces of several
-    fruits) gives every pixel that lies on another fruit's sphere to that fruit. Pixels on no sphere keep
-    their id. About the depth error of the spheres and the placed points; 0 = off."""
+    margin, but inside another fruit's sphere (radius + margin) and at most this margin beyond that sphere's
+    centre along the pixel's ray (on the half of the sphere that faces the camera: the half behind it is
+    hidden by the fruit itself) goes to that fruit: a slot that painted a piece of a neighbour (a fruit
+    entering or leaving the image, or one behind it) gives that piece back to the fruit whose surface it is,
+    and a fruit seen past the outline of one in front of it is not given to the front fruit. A fruit without
+    a plausible sphere (too few points, or pieces of several fruits) gives every pixel that lies on another
+    fruit's sphere to that fruit. Pixels on no sphere keep their id. About the depth error of the spheres and
+    the placed points; 0 = off."""
     surface_depth: Literal["sensor", "rendered"] = "sensor"
     """the depth that places a fused frame's fruit pixels for track_margin_m: 'sensor' = the recorded depth
     image where it has a valid pixel (the rendered depth elsewhere), 'rendered' = the NeRF's depth everywhere.
@@ -609,10 +612,12 @@ def relabel_by_surface(inst: np.ndarray, depth: np.ndarray, k: np.ndarray, c2w: 
     """Give each fruit pixel of a fused frame (`inst` [H, W] fruit ids, changed in place; z-depth in m that
     places the pixels (surface_depth), intrinsics k = (fx, fy, cx, cy), pose c2w) whose 3D point lies more than
     margin_m outside its own fruit's sphere but within another's (radius + margin_m) to that fruit (the one it
-    lies deepest in: smallest distance / radius). A fruit without a sphere (too few points, or no plausible fit:
-    most often a sliver a window gave a slot of its own) counts as outside its own sphere everywhere, so its
-    pixels that lie on another fruit's sphere join that fruit. Pixels on no sphere keep their id. Returns the
-    pixels moved."""
+    lies deepest in: smallest distance / radius). A sphere takes only points on its half facing the camera (at
+    most margin_m beyond its centre along the pixel's ray, beyond_centre): a point further back would be hidden
+    by that fruit, so it is the surface of something behind it (a fruit seen past its outline). A fruit without
+    a sphere (too few points, or no plausible fit: most often a sliver a window gave a slot of its own) counts
+    as outside its own sphere everywhere, so its pixels that lie on another fruit's sphere join that fruit.
+    Pixels on no sphere keep their id. Returns the pixels moved."""
     if margin_m <= 0 or not spheres:
         return 0
     ids, centres, radii = sphere_arrays(spheres)
@@ -634,7 +639,10 @@ def relabel_by_surface(inst: np.ndarray, depth: np.ndarray, k: np.ndarray, c2w: 
     rows = np.arange(len(v))
     col = np.maximum(own, 0)
     off_own = (own < 0) | (rel[rows, col] > reach[col])    # no own sphere in view holds none of them
-    score = np.where(rel <= reach[None], rel, np.inf)
+    ray = p - c2w[:3, 3]
+    dist = np.linalg.norm(ray, axis=1)
+    past = dist[:, None] - (ray / dist[:, None]) @ (centres - c2w[:3, 3]).T   # [P, S] beyond_centre per sphere
+    score = np.where((rel <= reach[None]) & (past <= margin_m), rel, np.inf)
     best = score.argmin(1)
     move = off_own & np.isfinite(score[rows, best]) & (best != own)
     inst[v[move], u[move]] = ids[best[move]]

@@ -12,7 +12,7 @@ import pytest
 from scipy.spatial import cKDTree
 
 from nerf.geometry import pose_txyzq
-from nerf.surfaces import fruit_sphere
+from nerf.surfaces import fruit_sphere, unproject
 from pipeline import cli
 from pipeline.classes import THING_IDS
 from pipeline.images import ImageError, read_label
@@ -297,6 +297,26 @@ def test_fruit_pixels_on_another_fruits_surface_go_to_that_fruit():
     assert panoptic_fusion.relabel_by_surface(inst, depth, k, np.eye(4), spheres, 0.0) == 0
     with pytest.raises(ValueError, match="track_margin_m"):
         panoptic_fusion.Config(track_margin_m=-0.01)
+
+
+def test_a_fruit_seen_past_the_outline_of_one_in_front_is_not_given_to_the_front_fruit():
+    k = np.array([200.0, 200.0, 80.0, 60.0])
+    front, back = (np.array([0.0, 0.0, 0.5]), 0.035), (np.array([0.04, 0.0, 0.54]), 0.03)
+    depth, who = sphere_depth(k, (120, 160), [front, back], background_m=2.0)
+    v, u = np.nonzero(who == 1)
+    points = unproject(depth, k, np.eye(4), v, u)
+    near = np.linalg.norm(points - front[0], axis=1) <= front[1] + 0.01    # within the front sphere's reach
+    assert near.sum() > 20 and (panoptic_fusion.beyond_centre(points[near], np.zeros(3), front[0]) > 0.01).all()
+    truth = np.where(who == 0, 1, np.where(who == 1, 2, 0)).astype(np.uint16)
+    # the fruit behind has no sphere (too few points): its pixels past the front fruit's outline stay its own
+    inst = truth.copy()
+    assert panoptic_fusion.relabel_by_surface(inst, depth, k, np.eye(4), {1: front}, 0.01) == 0
+    assert (inst == truth).all()
+    # the front fruit's own surface still goes to it from the id the back fruit's slot painted on it
+    painted = (who == 0) & (np.arange(160)[None] > 80)
+    inst[painted] = 2
+    assert panoptic_fusion.relabel_by_surface(inst, depth, k, np.eye(4), {1: front}, 0.01) == painted.sum() > 20
+    assert (inst == truth).all()
 
 
 def test_fruit_pixels_far_off_their_fruits_sphere_are_cleared_unless_the_detector_shows_the_fruit_there():
