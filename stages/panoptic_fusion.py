@@ -341,7 +341,53 @@ def centre_distance(a: LocalFruit, b: LocalFruit) -> float:
     return d
 
 
-def pair_cost(a: LocalFruit, b: LocalFruit, masks: dict[tuple[int, int], np.ndarray], cfg: Config) -> float:
+class MaskOverlaps:
+    """The slot masks of the frames several windows rendered (`masks`: {(window, frame): [H, W] slot codes,
+    0 = no slot}) read as joint histograms: per pair of windows and frame, the pixels of each pair of codes
+    (one per window), counted once and kept. Every mask overlap of the association (pair_cost, associate's
+    group and piece checks) is a sum over a few dozen histogram entries, not over the masks' pixels."""
+
+    def __init__(self, masks: dict[tuple[int, int], np.ndarray]):
+        self.masks = masks
+        by_frame: dict[int, list[int]] = defaultdict(list)
+        for w, f in masks:
+            by_frame[f].append(w)
+        self.shared: dict[tuple[int, int], list[int]] = defaultdict(list)
+        """(window, window), the smaller first -> the frames both rendered"""
+        for f, ws in sorted(by_frame.items()):
+            ws = sorted(ws)
+            for i, wa in enumerate(ws):
+                for wb in ws[i + 1:]:
+                    self.shared[(wa, wb)].append(f)
+        self._joint: dict[tuple[int, int, int], list[tuple[int, int, int]]] = {}
+
+    def frames(self, wa: int, wb: int) -> list[int]:
+        """The frames windows wa and wb both rendered."""
+        return self.shared.get((min(wa, wb), max(wa, wb)), [])
+
+    def joint(self, wa: int, wb: int, f: int) -> list[tuple[int, int, int]]:
+        """(code in window wa, code in window wb, pixels) over frame f's pixels where either mask has a slot
+        (0 = no slot there)."""
+        lo, hi = min(wa, wb), max(wa, wb)
+        if (lo, hi, f) not in self._joint:
+            a, b = self.masks[(lo, f)].ravel(), self.masks[(hi, f)].ravel()
+            on = (a != 0) | (b != 0)
+            packed = (a[on].astype(np.int64) << 32) | (b[on].astype(np.int64) & 0xFFFFFFFF)
+            keys, n = np.unique(packed, return_counts=True)
+            self._joint[(lo, hi, f)] = list(zip((keys >> 32).tolist(), (keys & 0xFFFFFFFF).tolist(), n.tolist()))
+        out = self._joint[(lo, hi, f)]
+        return out if wa == lo else [(y, x, n) for x, y, n in out]
+
+
+def frame_codes(lf: LocalFruit) -> dict[int, set[int]]:
+    """frame -> the slot codes (the masks' values) of a local fruit's pixel groups there."""
+    out: dict[int, set[int]] = defaultdict(set)
+    for f, g in lf.frames:
+        out[f].add(int(code(lf.slot, g)))
+    return out
+
+
+def pair_cost(a: LocalFruit, b: LocalFruit, overlaps: MaskOverlaps, cfg: Config) -> float:
     """Matching cost of two local fruits of different windows (inf = not the same fruit):
     distance / gate + (1 - IoU) with IoU pooled over the frames both windows rendered (0.5 if neither
     shows the fruit on any such frame). Centres farther apart than cfg.max_match_distance_m still match, up
@@ -352,18 +398,17 @@ def pair_cost(a: LocalFruit, b: LocalFruit, masks: dict[tuple[int, int], np.ndar
     if dist > max(cfg.max_match_distance_m, cfg.strong_match_distance_m):
         return np.inf
     inter = union = smaller = 0
-    codes_a, codes_b = defaultdict(list), defaultdict(list)
-    for lf, codes in ((a, codes_a), (b, codes_b)):
-        for f, g in lf.frames:
-            codes[f].append(code(lf.slot, g))
-    for (w, f), m in masks.items():
-        if w != a.window_id or (b.window_id, f) not in masks:
-            continue
-        ma = np.isin(m, codes_a.get(f, []))
-        mb = np.isin(masks[(b.window_id, f)], codes_b.get(f, []))
-        inter += int(np.count_nonzero(ma & mb))
-        union += int(np.count_nonzero(ma | mb))
-        smaller += min(int(np.count_nonzero(ma)), int(np.count_nonzero(mb)))
+    codes_a, codes_b = frame_codes(a), frame_codes(b)
+    for f in overlaps.frames(a.window_id, b.window_id):
+        ca, cb = codes_a.get(f, set()), codes_b.get(f, set())
+        n_a = n_b = 0
+        for x, y, n in overlaps.joint(a.window_id, b.window_id, f):
+            in_a, in_b = x in ca, y in cb
+            n_a += n if in_a else 0
+            n_b += n if in_b else 0
+            union += n if (in_a or in_b) else 0
+            inter += n if (in_a and in_b) else 0
+        smaller += min(n_a, n_b)
     iou = inter / union if union else 0.5
     if union and iou < cfg.min_mask_iou:
         return np.inf
@@ -386,6 +431,7 @@ def associate(fruits: list[LocalFruit], masks: dict[tuple[int, int], np.ndarray]
             by_window[lf.window_id].append(i)
     wids = sorted(by_window)
     gate = max(cfg.max_match_distance_m, cfg.strong_match_distance_m)
+    overlaps = MaskOverlaps(masks)
     # a box around each window's centres and medians: windows whose boxes lie farther apart than the gate
     # hold no pair within it (a row's windows meet only their neighbours; this keeps the pairs linear in length)
     box = {}
@@ -404,41 +450,15 @@ def associate(fruits: list[LocalFruit], masks: dict[tuple[int, int], np.ndarray]
                 continue
             cost = np.full(near.shape, np.inf)
             for r, c in zip(*np.nonzero(near)):
-                cost[r, c] = pair_cost(fruits[ia[r]], fruits[ib[c]], masks, cfg)
+                cost[r, c] = pair_cost(fruits[ia[r]], fruits[ib[c]], overlaps, cfg)
             finite = np.isfinite(cost)
             if not finite.any():
                 continue
             rows, cols = linear_sum_assignment(np.where(finite, cost, 1e6))  # large finite, never inf
             edges += [(float(cost[r, c]), ia[r], ib[c]) for r, c in zip(rows, cols) if finite[r, c]]
-    by_frame: dict[int, list[int]] = defaultdict(list)
-    for w, f in masks:
-        by_frame[f].append(w)
-    both_rendered: dict[tuple[int, int], list[int]] = defaultdict(list)  # (window, window) -> frames
-    for f, ws in by_frame.items():
-        ws = sorted(ws)
-        for a_i, wa in enumerate(ws):
-            for wb in ws[a_i + 1:]:
-                both_rendered[(wa, wb)].append(f)
-    overlaps: dict[tuple[int, int, int], list[tuple[int, int, int]]] = {}
-
-    def frame_overlap(wa: int, wb: int, f: int) -> list[tuple[int, int, int]]:
-        """(code in window wa, code in window wb, pixels) over frame f's pixels where either mask has a slot,
-        counted once per window pair and frame (0 = no slot there)."""
-        if (wa, wb, f) not in overlaps:
-            a, b = masks[(wa, f)].ravel(), masks[(wb, f)].ravel()
-            on = (a != 0) | (b != 0)
-            packed = (a[on].astype(np.int64) << 32) | (b[on].astype(np.int64) & 0xFFFFFFFF)
-            keys, n = np.unique(packed, return_counts=True)
-            overlaps[(wa, wb, f)] = list(zip((keys >> 32).tolist(), (keys & 0xFFFFFFFF).tolist(), n.tolist()))
-        return overlaps[(wa, wb, f)]
-
     parent = list(range(len(fruits)))
     members = [[i] for i in range(len(fruits))]
-    frame_codes: list[dict[int, set[int]]] = []   # per local fruit: frame -> its slot codes there (masks' values)
-    for lf in fruits:
-        frame_codes.append(defaultdict(set))
-        for f, g in lf.frames:
-            frame_codes[-1][f].add(int(code(lf.slot, g)))
+    codes_of = [frame_codes(lf) for lf in fruits]   # per local fruit: frame -> its slot codes there
 
     def find(i: int) -> int:
         while parent[i] != i:
@@ -453,7 +473,7 @@ def associate(fruits: list[LocalFruit], masks: dict[tuple[int, int], np.ndarray]
         for i in members[ri]:
             for j in members[rj]:
                 if fruits[i].window_id == fruits[j].window_id and (
-                        frame_codes[i].keys() & frame_codes[j].keys()
+                        codes_of[i].keys() & codes_of[j].keys()
                         or centre_distance(fruits[i], fruits[j]) > cfg.max_match_distance_m):
                     return False
         return group_iou(members[ri] + members[rj]) >= cfg.min_mask_iou
@@ -463,15 +483,15 @@ def associate(fruits: list[LocalFruit], masks: dict[tuple[int, int], np.ndarray]
         pooled over the frames both windows rendered (1 where no pair shares a frame)."""
         codes: dict[int, dict[int, set[int]]] = defaultdict(lambda: defaultdict(set))
         for i in idx:
-            for f, cs in frame_codes[i].items():
+            for f, cs in codes_of[i].items():
                 codes[fruits[i].window_id][f] |= cs
         wins, worst = sorted(codes), 1.0
         for a_i, wa in enumerate(wins):
             for wb in wins[a_i + 1:]:
                 inter = union = 0
-                for f in both_rendered.get((wa, wb), ()):
+                for f in overlaps.frames(wa, wb):
                     ca, cb = codes[wa].get(f, set()), codes[wb].get(f, set())
-                    for x, y, n in frame_overlap(wa, wb, f):
+                    for x, y, n in overlaps.joint(wa, wb, f):
                         if x in ca or y in cb:
                             union += n
                             inter += n if (x in ca and y in cb) else 0
@@ -486,22 +506,21 @@ def associate(fruits: list[LocalFruit], masks: dict[tuple[int, int], np.ndarray]
             members[ri] += members[rj]
     # a local fruit left alone whose mask lies mostly on one fruit of the other windows, within the gate of it,
     # is a second slot its window painted on that fruit (a piece beside the slot that holds the fruit)
-    owner = {(lf.window_id, f, c): k for k, lf in enumerate(fruits) for f, cs in frame_codes[k].items() for c in cs}
+    owner = {(lf.window_id, f, c): k for k, lf in enumerate(fruits) for f, cs in codes_of[k].items() for c in cs}
     for i, lf in enumerate(fruits):
         if lf.centre is None or find(i) != i or len(members[i]) > 1:
             continue
-        mine = frame_codes[i]
+        mine = codes_of[i]
         on: dict[int, int] = defaultdict(int)   # group root -> pixels of this fruit's mask on its masks
         total = 0
-        for (wa, wb), fids in both_rendered.items():
+        for (wa, wb), fids in overlaps.shared.items():
             if lf.window_id not in (wa, wb):
                 continue
             other = wb if lf.window_id == wa else wa
             for f in fids:
                 if f not in mine:
                     continue
-                for x, y, n in frame_overlap(wa, wb, f):
-                    own, theirs = (x, y) if lf.window_id == wa else (y, x)
+                for own, theirs, n in overlaps.joint(lf.window_id, other, f):
                     if own in mine[f]:
                         total += n
                         k = owner.get((other, f, theirs))

@@ -184,10 +184,10 @@ def test_fusion_uses_mask_overlap_on_shared_frames():
     b = panoptic_fusion.LocalFruit(1, 8, 0, [(4, 0)], 50, 2, np.full(3, 0.005))
     m_a, m_b = np.zeros((6, 6), np.int32), np.zeros((6, 6), np.int32)
     m_a[:3, :3], m_b[:3, :3] = panoptic_fusion.code(3, 0), panoptic_fusion.code(8, 0)
-    assert np.isfinite(panoptic_fusion.pair_cost(a, b, {(0, 4): m_a, (1, 4): m_b}, cfg))
+    assert np.isfinite(panoptic_fusion.pair_cost(a, b, panoptic_fusion.MaskOverlaps({(0, 4): m_a, (1, 4): m_b}), cfg))
     m_b[:] = 0
     m_b[3:, 3:] = panoptic_fusion.code(8, 0)  # close in 3D but disjoint masks on a frame both rendered
-    assert panoptic_fusion.pair_cost(a, b, {(0, 4): m_a, (1, 4): m_b}, cfg) == np.inf
+    assert panoptic_fusion.pair_cost(a, b, panoptic_fusion.MaskOverlaps({(0, 4): m_a, (1, 4): m_b}), cfg) == np.inf
 
 
 def test_a_sliver_with_a_poor_centre_still_joins_the_fruit_whose_mask_holds_it():
@@ -198,15 +198,16 @@ def test_a_sliver_with_a_poor_centre_still_joins_the_fruit_whose_mask_holds_it()
     m_a, m_b = np.zeros((6, 6), np.int32), np.zeros((6, 6), np.int32)
     m_a[:3, :3], m_b[:3, :2] = panoptic_fusion.code(3, 0), panoptic_fusion.code(8, 0)  # the other window: smaller
     masks = {(0, 4): m_a, (1, 4): m_b}
-    assert np.isfinite(panoptic_fusion.pair_cost(a, far, masks, cfg))
+    assert np.isfinite(panoptic_fusion.pair_cost(a, far, panoptic_fusion.MaskOverlaps(masks), cfg))
     m_b[:] = 0
     m_b[:3, 2:4] = panoptic_fusion.code(8, 0)  # half outside: the 4 cm gate holds
-    assert panoptic_fusion.pair_cost(a, far, masks, cfg) == np.inf
-    assert panoptic_fusion.pair_cost(a, far, {(0, 4): m_a}, cfg) == np.inf   # no shared frame
+    assert panoptic_fusion.pair_cost(a, far, panoptic_fusion.MaskOverlaps(masks), cfg) == np.inf
+    no_shared_frame = panoptic_fusion.MaskOverlaps({(0, 4): m_a})
+    assert panoptic_fusion.pair_cost(a, far, no_shared_frame, cfg) == np.inf
     too_far = panoptic_fusion.LocalFruit(1, 8, 0, [(4, 0)], 50, 2, np.array([0.09, 0.0, 0.0]))
     m_b[:] = 0
     m_b[:3, :3] = panoptic_fusion.code(8, 0)
-    assert panoptic_fusion.pair_cost(a, too_far, masks, cfg) == np.inf
+    assert panoptic_fusion.pair_cost(a, too_far, panoptic_fusion.MaskOverlaps(masks), cfg) == np.inf
 
 
 def test_runs_by_key_gives_each_labels_pixels_in_image_order():
@@ -525,7 +526,8 @@ def test_a_window_that_paints_a_fruit_with_two_slots_in_turn_gives_it_one_id():
     masks = masks_of((4, 8), {(0, 2): [(1, slice(0, 4))], (1, 2): [(5, slice(0, 4))],
                               (1, 8): [(6, slice(2, 6))], (2, 8): [(9, slice(2, 6))],
                               (1, 10): [(6, slice(2, 6))], (2, 10): [(9, slice(2, 6))]})
-    assert panoptic_fusion.pair_cost(b1, w2, masks, cfg) == np.inf  # window 1 shows it on slot 6 where 2 sees it
+    # window 1 shows it on slot 6 where 2 sees it
+    assert panoptic_fusion.pair_cost(b1, w2, panoptic_fusion.MaskOverlaps(masks), cfg) == np.inf
     groups = sorted(sorted(g) for g in panoptic_fusion.associate([a, b1, b2, w2], masks, cfg))
     assert groups == [[0, 1, 2, 3]]
     # the two slots of window 1 in one frame are two fruits, and so are two slots of one window far apart
@@ -547,7 +549,8 @@ def test_fruits_whose_masks_disagree_on_a_shared_frame_never_join_one_id_through
     painted = [(2, slice(0, 4)), (3, slice(6, 8))]
     masks = masks_of((4, 8), {(1, 4): painted, (1, 6): painted,
                               (2, 4): [(7, slice(0, 3))], (2, 6): [(7, slice(0, 3))]})
-    assert panoptic_fusion.pair_cost(piece, w3, masks, cfg) < panoptic_fusion.pair_cost(main, w2, masks, cfg)
+    overlaps = panoptic_fusion.MaskOverlaps(masks)
+    assert panoptic_fusion.pair_cost(piece, w3, overlaps, cfg) < panoptic_fusion.pair_cost(main, w2, overlaps, cfg)
     groups = sorted(sorted(g) for g in panoptic_fusion.associate([main, piece, w2, w3], masks, cfg))
     assert groups == [[0, 2, 3], [1]]   # the piece's mask misses window 2's fruit, so it stays apart
 
