@@ -178,6 +178,18 @@ def test_split_slots_become_separate_fruits_and_close_slots_never_merge_within_a
     assert panoptic_fusion.split_frames({0: c, 1: c, 5: far, 7: far + 0.01}, 0.08, min_frames=2) == [[0, 1], [5, 7]]
 
 
+def test_mask_overlaps_count_each_pair_of_codes_of_two_windows_once_in_either_order():
+    rng = np.random.default_rng(3)
+    m0, m1 = rng.integers(0, 4, (12, 10)).astype(np.int32), rng.integers(0, 3, (12, 10)).astype(np.int32)
+    ov = panoptic_fusion.MaskOverlaps({(0, 4): m0, (1, 4): m1, (0, 6): m0})   # frame 6: window 0 only
+    assert ov.frames(0, 1) == ov.frames(1, 0) == [4] and ov.frames(0, 2) == []
+    joint = ov.joint(0, 1, 4)
+    assert {(x, y) for x, y, _ in joint} == {(x, y) for x in range(4) for y in range(3)} - {(0, 0)}
+    for x, y, n in joint:
+        assert n == np.count_nonzero((m0 == x) & (m1 == y))
+    assert sorted(ov.joint(1, 0, 4)) == sorted((y, x, n) for x, y, n in joint)
+
+
 def test_fusion_uses_mask_overlap_on_shared_frames():
     cfg = panoptic_fusion.Config()
     a = panoptic_fusion.LocalFruit(0, 3, 0, [(4, 0)], 50, 2, np.zeros(3))
