@@ -658,9 +658,7 @@ def relabel_by_surface(inst: np.ndarray, depth: np.ndarray, k: np.ndarray, c2w: 
     rows = np.arange(len(v))
     col = np.maximum(own, 0)
     off_own = (own < 0) | (rel[rows, col] > reach[col])    # no own sphere in view holds none of them
-    ray = p - c2w[:3, 3]
-    dist = np.linalg.norm(ray, axis=1)
-    past = dist[:, None] - (ray / dist[:, None]) @ (centres - c2w[:3, 3]).T   # [P, S] beyond_centre per sphere
+    past = beyond_centre(p[:, None], c2w[:3, 3], centres)                    # [P, S]
     score = np.where((rel <= reach[None]) & (past <= margin_m), rel, np.inf)
     best = score.argmin(1)
     move = off_own & np.isfinite(score[rows, best]) & (best != own)
@@ -671,10 +669,11 @@ def relabel_by_surface(inst: np.ndarray, depth: np.ndarray, k: np.ndarray, c2w: 
 def beyond_centre(points: np.ndarray, eye: np.ndarray, centres: np.ndarray) -> np.ndarray:
     """[N] how far each point [N, 3] lies along its ray from the camera centre `eye` [3] beyond the sphere
     centre (`centres` [3] or [N, 3]) seen on that ray (m; negative in front of it). A fruit's seen surface
-    faces the camera: in front of its centre, or about level with it at the outline."""
+    faces the camera: in front of its centre, or about level with it at the outline. Broadcasts over leading
+    axes: points [N, 1, 3] and centres [S, 3] give [N, S]."""
     ray = points - eye
-    dist = np.linalg.norm(ray, axis=1)
-    return dist - ((ray / dist[:, None]) * (centres - eye)).sum(axis=1)
+    dist = np.linalg.norm(ray, axis=-1)
+    return dist - ((ray / dist[..., None]) * (centres - eye)).sum(axis=-1)
 
 
 def fruit_segment_pairs(inst: np.ndarray, segments: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -1228,9 +1227,9 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
             elif len(pts) == 0:
                 lf.drop_reason = "no pixel with valid rendered depth"
             else:
-                lf.median = robust_centre(pts)[0]
-                lf.centre = lf.median
                 fit = fruit_sphere(pts, cfg.max_fruit_radius_m, min_points=20) if cfg.centre == "sphere" else None
+                lf.median = fit[2] if fit is not None else robust_centre(pts)[0]   # fruit_sphere's own median
+                lf.centre = lf.median
                 if fit is not None:
                     lf.centre = fit[0]
                     radii.append(fit[1])
