@@ -42,7 +42,8 @@ SCHEMA = table_schema(
         "fruit_count.detector_cover of the fruit's pixels (null without detector images)", "frames", nullable=True),
     col("detector_p", pa.float64(), "chance that a real fruit is confirmed in as few of its fused frames, at the "
         "row's confirmation rate (binomial); below fruit_count.detector_alpha, with under half that rate, it is "
-        "not counted (null without detector images)", "fraction", nullable=True),
+        "not counted, as is a fruit with under half that rate and no plausible surface fit (null without "
+        "detector images)", "fraction", nullable=True),
     col("n_points", pa.int32(), "3D points kept after outlier rejection", "points"),
     col("n_outliers", pa.int32(), "3D points rejected by the MAD test", "points"),
     col("n_frames", pa.int32(), "fused frames the fruit appears in", "frames"),

@@ -91,8 +91,11 @@ class Config:
     P(X <= k | n, r)). That is what the NeRF renders from a detector false positive in a few training frames,
     which the validation frames' detections never repeat. The level bounds how short-lived a phantom can be
     and still be caught: with r = 0.9 a fruit confirmed in none of 2 frames has P = 0.01, of 3 frames 0.001;
-    with r = 0.8, 0.04 and 0.008. Lower it to drop fewer fruits, 0 with a detector that misses fruits in
-    many frames."""
+    with r = 0.8, 0.04 and 0.008. A fruit whose points admit no plausible surface fit (no fruit shape: a
+    patch of leaf the render paints as fruit, or pieces of several things) is unconfirmed on the first test
+    alone: without shape evidence the detector has to confirm it in at least half the row's share of
+    frames, however few frames it is seen in. Lower it to drop fewer fruits, 0 with a detector that misses
+    fruits in many frames (0 switches both tests off)."""
     max_fit_extent_ratio: float = 2.0
     """>= 1. A surface fit whose diameter (or length) exceeds this multiple of the largest extent of the points
     is rejected too: it extrapolates a whole fruit from a small cap (a fruit seen only as a sliver over or past
@@ -213,13 +216,15 @@ def measure(points: np.ndarray, cfg: Config) -> dict:
     return out
 
 
-def detector_support(checked: dict[int, int], confirmed: dict[int, int], alpha: float
-                     ) -> dict[int, tuple[float, bool]]:
+def detector_support(checked: dict[int, int], confirmed: dict[int, int], alpha: float,
+                     shapeless: frozenset[int] | set[int] = frozenset()) -> dict[int, tuple[float, bool]]:
     """Per fruit with n = checked[f] > 0 frames of which k = confirmed[f] confirm it: (p, unconfirmed), with
     r = the pooled confirmation rate over all fruits, p = P(X <= k) for X ~ Binomial(n, r) (the chance a real
-    fruit is confirmed this rarely) and unconfirmed = p < alpha and k / n < r / 2. The second test keeps a
-    well-confirmed fruit under a detector that confirms nearly everything (the pooled rate makes the binomial
-    overconfident: occluded fruits are missed more often than the average)."""
+    fruit is confirmed this rarely) and unconfirmed = k / n < r / 2 and (p < alpha or f in shapeless), for
+    alpha > 0. The first test keeps a well-confirmed fruit under a detector that confirms nearly everything
+    (the pooled rate makes the binomial overconfident: occluded fruits are missed more often than the
+    average). The binomial gives a fruit seen in few frames the benefit of the doubt; a shapeless fruit (its
+    points admit no plausible surface fit) has no 3D evidence of being a fruit, so it gets none."""
     n_all = sum(checked.values())
     if not n_all:
         return {}
@@ -228,7 +233,7 @@ def detector_support(checked: dict[int, int], confirmed: dict[int, int], alpha: 
     for f, n in checked.items():
         k = confirmed.get(f, 0)
         p = float(binom.cdf(k, n, rate))
-        out[f] = (p, bool(alpha > 0 and p < alpha and k / n < rate / 2))
+        out[f] = (p, bool(alpha > 0 and k / n < rate / 2 and (p < alpha or f in shapeless)))
     return out
 
 
@@ -284,17 +289,20 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
                 pick = subsample(int(good.sum()), cfg.max_points_per_view)
                 points[fruit].append(unproject(depth, k, c2w, vv[good][pick], uu[good][pick]))
     n_windows = slots[slots.fruit_id > 0].groupby("fruit_id").window_id.nunique()
-    support = detector_support(checked, confirmed, cfg.detector_alpha)
-    rows, cloud_pts, cloud_ids = [], [], []
-    too_wide: list[int] = []  # near-row fruits not counted by the oversize rule
-    lone_candidates: list[int] = []  # fragments the detector confirms in every frame (lone_fragment_m)
+    measured: dict[int, dict] = {}
     for fruit in ctx.progress(sorted(seen), "measure fruits", total=len(seen)):
         if fruit not in points:
             ctx.count("fruits_without_depth")
             ctx.note(f"fruit {fruit}: no pixel with valid depth in frames {seen[fruit]}; not in fruits")
             continue
+        measured[fruit] = measure(np.concatenate(points[fruit]), cfg)
+    shapeless = {f for f, m in measured.items() if m["diameter_sphere_m"] is None and m["diameter_spheroid_m"] is None}
+    support = detector_support(checked, confirmed, cfg.detector_alpha, shapeless)
+    rows, cloud_pts, cloud_ids = [], [], []
+    too_wide: list[int] = []  # near-row fruits not counted by the oversize rule
+    lone_candidates: list[int] = []  # fragments the detector confirms in every frame (lone_fragment_m)
+    for fruit, m in measured.items():
         pts = np.concatenate(points[fruit])
-        m = measure(pts, cfg)
         v = np.asarray(votes[fruit])
         things = v[np.isin(v, THING_IDS)]
         cls = int(np.bincount(things).argmax()) if len(things) else int(np.bincount(v).argmax())
