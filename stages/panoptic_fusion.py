@@ -164,6 +164,15 @@ class Config:
     of it or behind it is not taken, so a wider band mostly costs time. A fruit whose render lies off the
     sensor's surface (see off_sphere_factor) has its seen surface moved by the median offset from its rendered
     to its measured points. Needs spheres (track_margin_m > 0)."""
+    regrow_min_px: int = 12
+    """reference pixels (as in a 320x180 image, scaled with the image's area), >= 0; 0 = off. In every fused
+    frame between the first and the last frame a fruit's slots paint it in, a fruit whose render shows fewer of
+    its pixels than there are stuff pixels whose 3D point (placed with surface_depth) lies within
+    track_margin_m of its seen surface (see border_band_px) and not beyond its sphere's centre takes those
+    pixels, where they number at least this many: the render hid most of what the depth sensor measures of the
+    fruit there (a glimpse between leaves or past a neighbour, painted as leaf). A fruit the render shows well
+    keeps its outline as painted, so the leaf along it is not taken. About the smallest view of a fruit that
+    can carry an id (nerf_fit.panoptic.min_segment_px); needs track_margin_m > 0."""
     detector_split_m: float = 0.03
     """metres, >= 0; 0 = off. A fused fruit that the detector shows as several fruits is split. In every fused
     frame each detector segment lying mostly on fused fruits is given to the fruit holding most of it (at least
@@ -215,6 +224,8 @@ class Config:
             raise ValueError(f"panoptic_fusion.off_sphere_factor must be 0 (off) or >= 1, got {self.off_sphere_factor}")
         if self.border_band_px < 0:
             raise ValueError(f"panoptic_fusion.border_band_px must be >= 0, got {self.border_band_px}")
+        if self.regrow_min_px < 0:
+            raise ValueError(f"panoptic_fusion.regrow_min_px must be >= 0, got {self.regrow_min_px}")
         if not self.detector_split_m >= 0:
             raise ValueError(f"panoptic_fusion.detector_split_m must be >= 0, got {self.detector_split_m}")
         if self.group_gap_m < 0 or self.min_group_px < 1:
@@ -615,9 +626,9 @@ def surface_clouds(points: dict[int, np.ndarray], spheres: dict[int, tuple[np.nd
 
 def seen_surfaces(points: dict[int, np.ndarray], spheres: dict[int, tuple[np.ndarray, float]],
                   cfg: Config) -> dict[int, cKDTree]:
-    """surface_clouds for border_band_px ({} when it is off), one point per cube of half track_margin_m: the
-    nearest kept point then lies within the margin of where a dropped one was."""
-    return surface_clouds(points, spheres, cfg.track_margin_m / 2) if cfg.border_band_px else {}
+    """surface_clouds for border_band_px and regrow_min_px ({} when both are off), one point per cube of half
+    track_margin_m: the nearest kept point then lies within the margin of where a dropped one was."""
+    return surface_clouds(points, spheres, cfg.track_margin_m / 2) if cfg.border_band_px or cfg.regrow_min_px else {}
 
 
 def sphere_arrays(spheres: dict[int, tuple[np.ndarray, float]]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -831,14 +842,60 @@ def fill_from_detector(inst: np.ndarray, segments: np.ndarray, depth: np.ndarray
     return filled
 
 
+def regrow_hidden(inst: np.ndarray, depth: np.ndarray, k: np.ndarray, c2w: np.ndarray,
+                  spheres: dict[int, tuple[np.ndarray, float]], clouds: dict[int, cKDTree], margin_m: float,
+                  min_px: int) -> int:
+    """Give back to each fruit of `spheres` (the fruits whose slots paint them around this fused frame) the
+    stuff pixels of the frame (`inst` [H, W] fruit ids, changed in place; 0 = stuff) whose point (z-depth
+    `depth` in m, intrinsics k = (fx, fy, cx, cy), pose c2w) lies within margin_m of its seen surface
+    (`clouds`, surface_clouds) and at most margin_m beyond its sphere's centre along the pixel's ray, where there
+    are at least min_px of them and more than the fruit's own pixels inside its sphere's image box: the render
+    hid most of what the sensor measures of the fruit (a glimpse between leaves, painted as leaf). A fruit the
+    render paints well keeps its outline: the leaf along it is not taken. Where two fruits' surfaces hold a
+    pixel, the nearer takes it. Returns the pixels given."""
+    spheres = {f: b for f, b in spheres.items() if f in clouds}
+    if margin_m <= 0 or min_px <= 0 or not spheres:
+        return 0
+    ids, centres, radii = sphere_arrays(spheres)
+    boxes = sphere_boxes(inst.shape, k, c2w, centres, radii + margin_m)
+    h, w = inst.shape
+    taken_v, taken_u, taken_d, taken_f = [], [], [], []
+    for f, c, b in zip(ids.tolist(), centres, boxes):
+        v0, v1, u0, u1 = (0, h, 0, w) if b is None else b
+        if v0 >= v1 or u0 >= u1:
+            continue
+        box = inst[v0:v1, u0:u1]
+        v, u = np.nonzero((box == 0) & (depth[v0:v1, u0:u1] > 0))
+        if len(v) < min_px:
+            continue
+        v, u = v + v0, u + u0
+        p = unproject(depth, k, c2w, v, u)
+        gap = clouds[f].query(p, distance_upper_bound=margin_m)[0]
+        on = np.isfinite(gap) & (beyond_centre(p, c2w[:3, 3], c) <= margin_m)
+        n = int(on.sum())
+        if n >= min_px and n > np.count_nonzero(box == f):
+            taken_v.append(v[on]), taken_u.append(u[on]), taken_d.append(gap[on]), taken_f.append(np.full(n, f))
+    if not taken_v:
+        return 0
+    v, u, gap, f = (np.concatenate(a) for a in (taken_v, taken_u, taken_d, taken_f))
+    order = np.argsort(gap, kind="stable")
+    _, first = np.unique((v * w + u)[order], return_index=True)   # each pixel to the nearest surface
+    pick = order[first]
+    inst[v[pick], u[pick]] = f[pick]
+    return len(pick)
+
+
 def surface_rules(inst: np.ndarray, segments: np.ndarray | None, depth: np.ndarray, k: np.ndarray,
                   c2w: np.ndarray, spheres: dict[int, tuple[np.ndarray, float]], clouds: dict[int, cKDTree],
-                  off_sensor: dict[int, np.ndarray], cfg: Config, ctx: StageContext) -> None:
+                  off_sensor: dict[int, np.ndarray], cfg: Config, ctx: StageContext,
+                  painted: set[int] | None = None) -> None:
     """track_margin_m (relabel_by_surface), off_sphere_factor (clear_off_sphere, not for the fruits in
     `off_sensor`: render_off_sensor), detector_fill (fill_from_detector, where the frame has detector
-    segments) and border_band_px (border_surfaces; the spheres of the fruits in `off_sensor` moved by their
-    offset, as their `clouds` are: moved_surfaces) on one fused frame (`inst` changed in place; cleared pixels
-    get fruit id 0, which the callers map to background), their pixels counted in the summary."""
+    segments), border_band_px (border_surfaces; the spheres of the fruits in `off_sensor` moved by their
+    offset, as their `clouds` are: moved_surfaces) and regrow_min_px (regrow_hidden, for the fruits in
+    `painted`: those whose slots paint them at or before this frame and at or after it; None = not run) on
+    one fused frame (`inst` changed in place; cleared pixels get fruit id 0, which the callers map to
+    background), their pixels counted in the summary."""
     moved = relabel_by_surface(inst, depth, k, c2w, spheres, cfg.track_margin_m)
     if moved:
         ctx.count("pixels_moved_to_their_surface", moved)
@@ -851,12 +908,18 @@ def surface_rules(inst: np.ndarray, segments: np.ndarray | None, depth: np.ndarr
         filled = fill_from_detector(inst, segments, depth, k, c2w, spheres, cfg.track_margin_m)
         if filled:
             ctx.count("pixels_filled_from_detector", filled)
+    at_sensor = {f: (c + off_sensor[f], r) if f in off_sensor else (c, r) for f, (c, r) in spheres.items()}
     if cfg.border_band_px:
         band = int(np.ceil(cfg.border_band_px * np.sqrt(max(1.0, inst.size / BASE_PIXELS)) - 1e-9))
-        at_sensor = {f: (c + off_sensor[f], r) if f in off_sensor else (c, r) for f, (c, r) in spheres.items()}
         moved = border_surfaces(inst, depth, k, c2w, at_sensor, clouds, cfg.track_margin_m, band)
         if moved:
             ctx.count("pixels_given_at_the_border", moved)
+    if cfg.regrow_min_px and painted:
+        min_px = int(np.ceil(cfg.regrow_min_px * max(1.0, inst.size / BASE_PIXELS) - 1e-9))
+        given = regrow_hidden(inst, depth, k, c2w, {f: at_sensor[f] for f in painted if f in at_sensor}, clouds,
+                              cfg.track_margin_m, min_px)
+        if given:
+            ctx.count("pixels_regrown_where_hidden", given)
 
 
 def segment_centres(inst: np.ndarray, segments: np.ndarray, depth: np.ndarray, k: np.ndarray, c2w: np.ndarray,
@@ -1296,6 +1359,12 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
     in_frame: dict[int, set[int]] = {}   # frame -> the fruits in its fused image
     depth_file: dict[int, Path] = {}     # frame -> its fused depth PNG
     cams: dict[int, np.ndarray] = {}     # frame -> camera pose (row frame)
+    spans: dict[int, tuple[int, int]] = {}   # fruit -> (first, last) frame its slots paint it in
+    for lf in local:
+        if lf.fruit_id and lf.frames:
+            first, last = spans.get(lf.fruit_id, (lf.frames[0][0], lf.frames[0][0]))
+            fs = [f for f, _ in lf.frames]
+            spans[lf.fruit_id] = (min(first, *fs), max(last, *fs))
     rows = []
     for fid, frame_views in ctx.progress(pick.groupby("frame_id", sort=True), "write fused frames",
                                          total=int(pick.frame_id.nunique())):
@@ -1322,7 +1391,8 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
             segments = fruit_segments(fr, ctx.data_root, dropped.get(fid))
         if spheres:
             before = out_inst.copy()
-            surface_rules(out_inst, segments, placed, k, r.c2w, spheres, clouds, off_sensor, cfg, ctx)
+            painted = {f for f, (first, last) in spans.items() if first <= fid <= last}
+            surface_rules(out_inst, segments, placed, k, r.c2w, spheres, clouds, off_sensor, cfg, ctx, painted)
             m = out_inst != before
             out_sem[m] = fruit_class[out_inst[m]]
         if split and segments is not None:

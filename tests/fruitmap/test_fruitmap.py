@@ -608,6 +608,51 @@ def front_cap(ball: tuple[np.ndarray, float], n: int = 6000, seed: int = 0) -> n
     return c + r * d[d @ c < -r]
 
 
+def test_a_fruit_the_render_hides_takes_back_the_pixels_on_its_seen_surface():
+    k = np.array([100.0, 100.0, 40.0, 30.0])
+    a, b = (np.array([0.0, 0.0, 0.5]), 0.03), (np.array([0.09, 0.0, 0.5]), 0.03)
+    depth, who = sphere_depth(k, (60, 80), [a, b], background_m=2.0)
+    truth = np.where(who == 0, 1, np.where(who == 1, 2, 0)).astype(np.uint16)
+    spheres = {1: a, 2: b}
+    clouds = panoptic_fusion.surface_clouds({f: front_cap(ball) for f, ball in spheres.items()}, spheres, 0.002)
+    rows, cols = np.mgrid[0:60, 0:80]
+    # the render paints fruit 1 as leaf but for a corner of it: it takes back every pixel on its seen surface
+    hidden = (who == 0) & (rows + cols > 67)
+    assert 12 < (who == 0).sum() - hidden.sum() < hidden.sum()
+    inst = truth.copy()
+    inst[hidden] = 0
+    assert panoptic_fusion.regrow_hidden(inst, depth, k, np.eye(4), spheres, clouds, 0.01, 12) == hidden.sum()
+    assert (inst == truth).all()
+    # a fruit the render shows well keeps its outline as painted (here one ring short of the sensor's outline)
+    ring = (who == 0) & (cv2.erode((who == 0).astype(np.uint8), np.ones((3, 3), np.uint8)) == 0)
+    inst = truth.copy()
+    inst[ring] = 0
+    assert ring.sum() > 12 and panoptic_fusion.regrow_hidden(inst, depth, k, np.eye(4), spheres, clouds, 0.01, 12) == 0
+    # a leaf 2 cm in front of the hidden part is not the fruit
+    inst = truth.copy()
+    inst[hidden] = 0
+    leaf = np.where(hidden, depth - 0.02, depth)
+    assert panoptic_fusion.regrow_hidden(inst, leaf, k, np.eye(4), spheres, clouds, 0.01, 12) == 0
+    # nor is a surface 1.5 cm beyond the fruit's centre, inside its outline, where a leaf's points come within the
+    # margin of the seen surface of the fruit's far side: only the half facing the camera is taken
+    behind = np.where(hidden, a[0][2] + 0.015, depth)
+    g = np.mgrid[-0.02:0.02:0.002, -0.02:0.02:0.002].reshape(2, -1).T
+    stray = np.c_[g, np.full(len(g), a[0][2] + 0.015)]          # points a slot painted past the centre, inside
+    far = panoptic_fusion.surface_clouds({1: np.concatenate([front_cap(a), stray])}, {1: a}, 0.002)
+    assert (far[1].query(stray)[0] < 0.004).all()
+    assert panoptic_fusion.regrow_hidden(inst, behind, k, np.eye(4), {1: a}, far, 0.01, 1) == 0
+    # fewer pixels on the surface than min_px, or no margin: nothing; a fruit not in `spheres` takes nothing
+    assert panoptic_fusion.regrow_hidden(inst, depth, k, np.eye(4), spheres, clouds, 0.01, hidden.sum() + 1) == 0
+    assert panoptic_fusion.regrow_hidden(inst, depth, k, np.eye(4), spheres, clouds, 0.0, 12) == 0
+    assert panoptic_fusion.regrow_hidden(inst, depth, k, np.eye(4), {2: b}, clouds, 0.01, 12) == 0
+    assert (inst[hidden] == 0).all()
+    # where two fruits' surfaces hold a pixel, the nearer takes it (fruit 4's surface lies 5 mm outside fruit 1's)
+    two = {1: a, 4: (a[0], a[1] + 0.005)}
+    two_clouds = {1: clouds[1], 4: panoptic_fusion.surface_clouds({4: front_cap(two[4])}, two, 0.002)[4]}
+    assert panoptic_fusion.regrow_hidden(inst, depth, k, np.eye(4), two, two_clouds, 0.01, 12) == hidden.sum()
+    assert (inst[hidden] == 1).all()
+
+
 def test_a_fruit_cut_off_by_the_image_edge_takes_its_sliver_there_from_its_seen_surface():
     k = np.array([100.0, 100.0, 40.0, 30.0])
     a, b = (np.array([-0.2, 0.0, 0.5]), 0.03), (np.array([0.0, 0.0, 0.5]), 0.03)  # a: cut off by the left edge
@@ -934,7 +979,8 @@ def test_a_frame_the_nearest_window_rendered_without_its_fruits_takes_them_from_
         return sem, slots
 
     # the fruit pixels the windows rendered, nothing added
-    render_only = ("panoptic_fusion.detector_fill=false", "panoptic_fusion.border_band_px=0")
+    render_only = ("panoptic_fusion.detector_fill=false", "panoptic_fusion.border_band_px=0",
+                   "panoptic_fusion.regrow_min_px=0")
     whole = make_row(name="whole")
     whole.runner(*render_only).run(["panoptic_fusion"], force=True)
     row = make_row(hook=lose_fruits)
