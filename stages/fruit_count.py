@@ -289,20 +289,21 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
                 pick = subsample(int(good.sum()), cfg.max_points_per_view)
                 points[fruit].append(unproject(depth, k, c2w, vv[good][pick], uu[good][pick]))
     n_windows = slots[slots.fruit_id > 0].groupby("fruit_id").window_id.nunique()
-    measured: dict[int, dict] = {}
+    measured: dict[int, tuple[np.ndarray, dict]] = {}   # fruit -> (its points, measure's result)
     for fruit in ctx.progress(sorted(seen), "measure fruits", total=len(seen)):
         if fruit not in points:
             ctx.count("fruits_without_depth")
             ctx.note(f"fruit {fruit}: no pixel with valid depth in frames {seen[fruit]}; not in fruits")
             continue
-        measured[fruit] = measure(np.concatenate(points[fruit]), cfg)
-    shapeless = {f for f, m in measured.items() if m["diameter_sphere_m"] is None and m["diameter_spheroid_m"] is None}
+        pts = np.concatenate(points[fruit])
+        measured[fruit] = pts, measure(pts, cfg)
+    shapeless = {f for f, (_, m) in measured.items()   # no plausible surface fit: no fruit shape
+                 if m["diameter_sphere_m"] is None and m["diameter_spheroid_m"] is None}
     support = detector_support(checked, confirmed, cfg.detector_alpha, shapeless)
     rows, cloud_pts, cloud_ids = [], [], []
     too_wide: list[int] = []  # near-row fruits not counted by the oversize rule
     lone_candidates: list[int] = []  # fragments the detector confirms in every frame (lone_fragment_m)
-    for fruit, m in measured.items():
-        pts = np.concatenate(points[fruit])
+    for fruit, (pts, m) in measured.items():
         v = np.asarray(votes[fruit])
         things = v[np.isin(v, THING_IDS)]
         cls = int(np.bincount(things).argmax()) if len(things) else int(np.bincount(v).argmax())
