@@ -24,6 +24,7 @@ from rowmap.detections import dropped_segments, fruit_segments
 from rowmap.geometry import (POSE_COLS, pixel_groups, runs_by_key, sphere_behind, subsample, window_alignments,
                              with_sensor_depth)
 from rowmap.renders import PANOPTIC_KINDS, Renders, encode, read_depth
+from rowmap.scoring import image_pixels_for
 
 INPUTS = ("frames", "windows", "window_poses", "window_metrics", "nerf", "renders", "images", "detections_filtered")
 MAX_GROUPS = 256
@@ -915,9 +916,8 @@ def surface_rules(inst: np.ndarray, segments: np.ndarray | None, depth: np.ndarr
         if moved:
             ctx.count("pixels_given_at_the_border", moved)
     if cfg.regrow_min_px and painted:
-        min_px = int(np.ceil(cfg.regrow_min_px * max(1.0, inst.size / BASE_PIXELS) - 1e-9))
         given = regrow_hidden(inst, depth, k, c2w, {f: at_sensor[f] for f in painted if f in at_sensor}, clouds,
-                              cfg.track_margin_m, min_px)
+                              cfg.track_margin_m, image_pixels_for(cfg.regrow_min_px, inst.size))
         if given:
             ctx.count("pixels_regrown_where_hidden", given)
 
@@ -1362,9 +1362,9 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
     spans: dict[int, tuple[int, int]] = {}   # fruit -> (first, last) frame its slots paint it in
     for lf in local:
         if lf.fruit_id and lf.frames:
-            first, last = spans.get(lf.fruit_id, (lf.frames[0][0], lf.frames[0][0]))
             fs = [f for f, _ in lf.frames]
-            spans[lf.fruit_id] = (min(first, *fs), max(last, *fs))
+            first, last = spans.get(lf.fruit_id, (min(fs), max(fs)))
+            spans[lf.fruit_id] = (min(first, min(fs)), max(last, max(fs)))
     rows = []
     for fid, frame_views in ctx.progress(pick.groupby("frame_id", sort=True), "write fused frames",
                                          total=int(pick.frame_id.nunique())):
