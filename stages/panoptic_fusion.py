@@ -167,13 +167,14 @@ class Config:
     to its measured points. Needs spheres (track_margin_m > 0)."""
     regrow_min_px: int = 12
     """reference pixels (as in a 320x180 image, scaled with the image's area), >= 0; 0 = off. In every fused
-    frame between the first and the last frame a fruit's slots paint it in, a fruit whose render shows fewer of
-    its pixels than there are stuff pixels whose 3D point (placed with surface_depth) lies within
-    track_margin_m of its seen surface (see border_band_px) and not beyond its sphere's centre takes those
-    pixels, where they number at least this many: the render hid most of what the depth sensor measures of the
-    fruit there (a glimpse between leaves or past a neighbour, painted as leaf). A fruit the render shows well
-    keeps its outline as painted, so the leaf along it is not taken. About the smallest view of a fruit that
-    can carry an id (nerf_fit.panoptic.min_segment_px); needs track_margin_m > 0."""
+    frame between the first and the last frame a fruit's slots paint it in, and in every fused frame where it
+    holds pixels after the rules before this one (track_margin_m, detector_fill, border_band_px), a fruit whose
+    render shows fewer of its pixels than there are stuff pixels whose 3D point (placed with surface_depth) lies
+    within track_margin_m of its seen surface (see border_band_px) and not beyond its sphere's centre takes
+    those pixels, where they number at least this many: the render hid most of what the depth sensor measures
+    of the fruit there (a glimpse between leaves or past a neighbour, painted as leaf). A fruit the render
+    shows well keeps its outline as painted, so the leaf along it is not taken. About the smallest view of a
+    fruit that can carry an id (nerf_fit.panoptic.min_segment_px); needs track_margin_m > 0."""
     detector_split_m: float = 0.03
     """metres, >= 0; 0 = off. A fused fruit that the detector shows as several fruits is split. In every fused
     frame each detector segment lying mostly on fused fruits is given to the fruit holding most of it (at least
@@ -846,7 +847,7 @@ def fill_from_detector(inst: np.ndarray, segments: np.ndarray, depth: np.ndarray
 def regrow_hidden(inst: np.ndarray, depth: np.ndarray, k: np.ndarray, c2w: np.ndarray,
                   spheres: dict[int, tuple[np.ndarray, float]], clouds: dict[int, cKDTree], margin_m: float,
                   min_px: int) -> int:
-    """Give back to each fruit of `spheres` (the fruits whose slots paint them around this fused frame) the
+    """Give back to each fruit of `spheres` (the fruits in view in this fused frame: surface_rules) the
     stuff pixels of the frame (`inst` [H, W] fruit ids, changed in place; 0 = stuff) whose point (z-depth
     `depth` in m, intrinsics k = (fx, fy, cx, cy), pose c2w) lies within margin_m of its seen surface
     (`clouds`, surface_clouds) and at most margin_m beyond its sphere's centre along the pixel's ray, where there
@@ -894,9 +895,9 @@ def surface_rules(inst: np.ndarray, segments: np.ndarray | None, depth: np.ndarr
     `off_sensor`: render_off_sensor), detector_fill (fill_from_detector, where the frame has detector
     segments), border_band_px (border_surfaces; the spheres of the fruits in `off_sensor` moved by their
     offset, as their `clouds` are: moved_surfaces) and regrow_min_px (regrow_hidden, for the fruits in
-    `painted`: those whose slots paint them at or before this frame and at or after it; None = not run) on
-    one fused frame (`inst` changed in place; cleared pixels get fruit id 0, which the callers map to
-    background), their pixels counted in the summary."""
+    `painted`: those whose slots paint them at or before this frame and at or after it, and those the rules
+    before it left with pixels in the frame; None = not run) on one fused frame (`inst` changed in place;
+    cleared pixels get fruit id 0, which the callers map to background), their pixels counted in the summary."""
     moved = relabel_by_surface(inst, depth, k, c2w, spheres, cfg.track_margin_m)
     if moved:
         ctx.count("pixels_moved_to_their_surface", moved)
@@ -915,8 +916,11 @@ def surface_rules(inst: np.ndarray, segments: np.ndarray | None, depth: np.ndarr
         moved = border_surfaces(inst, depth, k, c2w, at_sensor, clouds, cfg.track_margin_m, band)
         if moved:
             ctx.count("pixels_given_at_the_border", moved)
-    if cfg.regrow_min_px and painted:
-        given = regrow_hidden(inst, depth, k, c2w, {f: at_sensor[f] for f in painted if f in at_sensor}, clouds,
+    if cfg.regrow_min_px and painted is not None:
+        # a fruit the earlier rules put in this frame outside its slots' span (a view its windows painted as
+        # leaf or as a neighbour, which its surface won back) is as much in view as one its slots paint
+        shown = painted | set(np.unique(inst[inst > 0]).tolist())
+        given = regrow_hidden(inst, depth, k, c2w, {f: at_sensor[f] for f in shown if f in at_sensor}, clouds,
                               cfg.track_margin_m, image_pixels_for(cfg.regrow_min_px, inst.size))
         if given:
             ctx.count("pixels_regrown_where_hidden", given)

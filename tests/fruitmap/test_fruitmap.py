@@ -653,6 +653,37 @@ def test_a_fruit_the_render_hides_takes_back_the_pixels_on_its_seen_surface():
     assert (inst[hidden] == 1).all()
 
 
+def test_a_fruit_the_surface_gave_pixels_outside_its_slots_span_is_regrown_there_too(tmp_path):
+    k = np.array([100.0, 100.0, 40.0, 30.0])
+    a, b = (np.array([0.0, 0.0, 0.5]), 0.03), (np.array([0.09, 0.0, 0.5]), 0.03)
+    depth, who = sphere_depth(k, (60, 80), [a, b], background_m=2.0)
+    truth = np.where(who == 0, 1, np.where(who == 1, 2, 0)).astype(np.uint16)
+    spheres = {1: a, 2: b}
+    clouds = panoptic_fusion.surface_clouds({f: front_cap(ball) for f, ball in spheres.items()}, spheres, 0.002)
+    rows, cols = np.mgrid[0:60, 0:80]
+    hidden = (who == 0) & (rows + cols > 67)     # painted as leaf
+    corner = (who == 0) & ~hidden                # painted with the neighbour's slot
+    cfg = panoptic_fusion.Config(detector_fill=False, border_band_px=0, track_margin_m=0.01)
+    ctx = StageContext(stage="panoptic_fusion", seq=SEQ, data_root=tmp_path, show_progress=False)
+
+    def fused(corner_id: int, painted: set[int] | None) -> np.ndarray:
+        inst = truth.copy()
+        inst[hidden], inst[corner] = 0, corner_id
+        panoptic_fusion.surface_rules(inst, None, depth, k, np.eye(4), spheres, clouds, {}, cfg, ctx, painted)
+        return inst
+
+    # this frame lies outside fruit 1's slots' span (only fruit 2's slot paints here); its surface takes the
+    # corner back from fruit 2, and then the hidden rest of it comes back as it does inside the span
+    assert (fused(2, {2}) == truth).all()
+    assert (fused(2, {1, 2}) == truth).all()
+    # the corner painted as leaf and fruit 1 outside its span: nothing shows it in this frame, nothing regrows
+    inst = fused(0, {2})
+    assert (inst[hidden | corner] == 0).all() and (inst[who == 1] == 2).all()
+    # inside the span it does regrow (the corner, on its surface, comes back with the rest); None: not run
+    assert (fused(0, {1, 2})[hidden] == 1).all()
+    assert (fused(2, None)[hidden] == 0).all() and (fused(2, None)[corner] == 1).all()
+
+
 def test_a_fruit_cut_off_by_the_image_edge_takes_its_sliver_there_from_its_seen_surface():
     k = np.array([100.0, 100.0, 40.0, 30.0])
     a, b = (np.array([-0.2, 0.0, 0.5]), 0.03), (np.array([0.0, 0.0, 0.5]), 0.03)  # a: cut off by the left edge
