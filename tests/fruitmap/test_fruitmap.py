@@ -608,13 +608,20 @@ def front_cap(ball: tuple[np.ndarray, float], n: int = 6000, seed: int = 0) -> n
     return c + r * d[d @ c < -r]
 
 
-def test_a_fruit_the_render_hides_takes_back_the_pixels_on_its_seen_surface():
+def two_seen_fruits() -> tuple:
+    """Two fruits side by side 50 cm in front of a 80x60 camera: k, balls a and b, the sensor depth, which
+    fruit each pixel shows (-1: background), the true instance image, their spheres and seen surfaces."""
     k = np.array([100.0, 100.0, 40.0, 30.0])
     a, b = (np.array([0.0, 0.0, 0.5]), 0.03), (np.array([0.09, 0.0, 0.5]), 0.03)
     depth, who = sphere_depth(k, (60, 80), [a, b], background_m=2.0)
     truth = np.where(who == 0, 1, np.where(who == 1, 2, 0)).astype(np.uint16)
     spheres = {1: a, 2: b}
     clouds = panoptic_fusion.surface_clouds({f: front_cap(ball) for f, ball in spheres.items()}, spheres, 0.002)
+    return k, a, b, depth, who, truth, spheres, clouds
+
+
+def test_a_fruit_the_render_hides_takes_back_the_pixels_on_its_seen_surface():
+    k, a, b, depth, who, truth, spheres, clouds = two_seen_fruits()
     rows, cols = np.mgrid[0:60, 0:80]
     # the render paints fruit 1 as leaf but for a corner of it: it takes back every pixel on its seen surface
     hidden = (who == 0) & (rows + cols > 67)
@@ -654,12 +661,7 @@ def test_a_fruit_the_render_hides_takes_back_the_pixels_on_its_seen_surface():
 
 
 def test_a_fruit_the_surface_gave_pixels_outside_its_slots_span_is_regrown_there_too(tmp_path):
-    k = np.array([100.0, 100.0, 40.0, 30.0])
-    a, b = (np.array([0.0, 0.0, 0.5]), 0.03), (np.array([0.09, 0.0, 0.5]), 0.03)
-    depth, who = sphere_depth(k, (60, 80), [a, b], background_m=2.0)
-    truth = np.where(who == 0, 1, np.where(who == 1, 2, 0)).astype(np.uint16)
-    spheres = {1: a, 2: b}
-    clouds = panoptic_fusion.surface_clouds({f: front_cap(ball) for f, ball in spheres.items()}, spheres, 0.002)
+    k, _, _, depth, who, truth, spheres, clouds = two_seen_fruits()
     rows, cols = np.mgrid[0:60, 0:80]
     hidden = (who == 0) & (rows + cols > 67)     # painted as leaf
     corner = (who == 0) & ~hidden                # painted with the neighbour's slot
