@@ -1366,9 +1366,9 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
     spans: dict[int, tuple[int, int]] = {}   # fruit -> (first, last) frame its slots paint it in
     for lf in local:
         if lf.fruit_id and lf.frames:
-            fs = [f for f, _ in lf.frames]
-            first, last = spans.get(lf.fruit_id, (min(fs), max(fs)))
-            spans[lf.fruit_id] = (min(first, min(fs)), max(last, max(fs)))
+            lo, hi = min(f for f, _ in lf.frames), max(f for f, _ in lf.frames)
+            first, last = spans.get(lf.fruit_id, (lo, hi))
+            spans[lf.fruit_id] = (min(first, lo), max(last, hi))
     rows = []
     for fid, frame_views in ctx.progress(pick.groupby("frame_id", sort=True), "write fused frames",
                                          total=int(pick.frame_id.nunique())):
