@@ -175,6 +175,15 @@ class Config:
     of the fruit there (a glimpse between leaves or past a neighbour, painted as leaf). A fruit the render
     shows well keeps its outline as painted, so the leaf along it is not taken. About the smallest view of a
     fruit that can carry an id (nerf_fit.panoptic.min_segment_px); needs track_margin_m > 0."""
+    regrow_passes: int = 2
+    """passes of regrow_min_px, >= 1. The first runs as each fused frame is written, on the seen surface the
+    windows' renders give a fruit. Each further pass, once every fused frame is written (and split by
+    detector_split_m), adds to the seen surface of each fruit with a sphere (whose render lies on the sensor's
+    surface: off_sphere_factor) the points of the pixels it holds in the fused frames, placed with
+    surface_depth (max_points_per_view per frame), and runs regrow_hidden again on every frame for the fruits
+    it shows. A side of a fruit its windows painted as leaf or as a neighbour, and that the rules gave back in
+    some frames, then counts as its surface in the frames where it is hidden again. Each pass reads the fused
+    frames twice; 1 = the first pass only."""
     detector_split_m: float = 0.03
     """metres, >= 0; 0 = off. A fused fruit that the detector shows as several fruits is split. In every fused
     frame each detector segment lying mostly on fused fruits is given to the fruit holding most of it (at least
@@ -226,8 +235,9 @@ class Config:
             raise ValueError(f"panoptic_fusion.off_sphere_factor must be 0 (off) or >= 1, got {self.off_sphere_factor}")
         if self.border_band_px < 0:
             raise ValueError(f"panoptic_fusion.border_band_px must be >= 0, got {self.border_band_px}")
-        if self.regrow_min_px < 0:
-            raise ValueError(f"panoptic_fusion.regrow_min_px must be >= 0, got {self.regrow_min_px}")
+        if self.regrow_min_px < 0 or self.regrow_passes < 1:
+            raise ValueError("panoptic_fusion: regrow_min_px must be >= 0 and regrow_passes >= 1, got "
+                             f"{self.regrow_min_px}, {self.regrow_passes}")
         if not self.detector_split_m >= 0:
             raise ValueError(f"panoptic_fusion.detector_split_m must be >= 0, got {self.detector_split_m}")
         if self.group_gap_m < 0 or self.min_group_px < 1:
@@ -1105,7 +1115,8 @@ def compose(labelled: list[tuple[np.ndarray, np.ndarray, np.ndarray]], wins: lis
 def split_fruits(seg_views: dict, in_frame: dict[int, set[int]], depth_file: dict[int, Path],
                  cams: dict[int, np.ndarray], rows: list[dict], spheres: dict, clouds: dict[int, cKDTree],
                  off_sensor: dict[int, np.ndarray], fruit_centres: dict[int, np.ndarray], fruit_class: np.ndarray,
-                 frames: pd.DataFrame, dropped: dict, out_dir: Path, cfg: Config, ctx: StageContext) -> int:
+                 frames: pd.DataFrame, dropped: dict, out_dir: Path, cfg: Config, ctx: StageContext
+                 ) -> tuple[int, dict[int, tuple[np.ndarray, float]], dict[int, np.ndarray], np.ndarray]:
     """detector_split_m: rewrite the fused frames (PNGs in `out_dir`; per frame its depth PNG `depth_file` and
     pose `cams`) of the fruits the detector shows as several (detector_clusters on `seg_views`: per fruit its
     (frame, segment, pixels, centre, points)); `rows` (panoptic_frames rows) get their fruit counts updated.
@@ -1116,7 +1127,8 @@ def split_fruits(seg_views: dict, in_frame: dict[int, set[int]], depth_file: dic
     sphere take their cluster's (and its segments' points inside it as their surface, `clouds`), and the
     surface rules run again with them (a fruit given its cluster's sphere leaves `off_sensor`: that sphere is
     fitted to sensor points). `dropped`: the segments the depth filter dropped, per frame. Returns the number of
-    fruits of the row."""
+    fruits of the row, and their spheres, render offsets (`off_sensor`) and classes (fruit id -> class) after
+    the split."""
     plans = {}
     classes = list(fruit_class)
     n_fruits = len(fruit_class) - 1
@@ -1165,7 +1177,7 @@ def split_fruits(seg_views: dict, in_frame: dict[int, set[int]], depth_file: dic
         plans[f] = (ids, balls, seg_cluster, surfaces)
         ctx.count("fruits_split_by_detector")
     if not plans:
-        return n_fruits
+        return n_fruits, spheres, off_sensor, fruit_class
     if n_fruits > 65535:
         raise ValueError(f"panoptic_fusion: {n_fruits} fruits do not fit 16-bit instance PNGs (max 65535)")
     fruit_class = np.asarray(classes, np.uint8)
@@ -1176,9 +1188,7 @@ def split_fruits(seg_views: dict, in_frame: dict[int, set[int]], depth_file: dic
         name = f"{fid:06d}.png"
         sem = read_label(out_dir / "semantic" / name, "fused semantic")
         inst = read_label(out_dir / "instance" / name, "fused instance")
-        depth = read_depth(depth_file[fid])
-        if cfg.surface_depth == "sensor":
-            depth = with_sensor_depth(depth, ctx.abspath(fr.depth_path), fr.depth_scale_m)
+        depth = placed_depth(depth_file[fid], fr, cfg, ctx)
         segments = fruit_segments(fr, ctx.data_root, dropped.get(fid))
         k = np.array([fr.fx, fr.fy, fr.cx, fr.cy], np.float64)
         c2w = cams[fid]
@@ -1195,7 +1205,62 @@ def split_fruits(seg_views: dict, in_frame: dict[int, set[int]], depth_file: dic
         write_png(out_dir / "semantic" / name, sem)
         write_png(out_dir / "instance" / name, inst)
         row["n_fruits"] = int(len(np.unique(inst[inst > 0])))
-    return n_fruits
+    return n_fruits, sphere_of, off_sensor, fruit_class
+
+
+def placed_depth(depth_path: Path, fr, cfg: Config, ctx: StageContext) -> np.ndarray:
+    """[H, W] metres: a fused frame's depth (its PNG at `depth_path`; `fr` its frames row) as the surface rules
+    place pixels with it (surface_depth: the recorded depth where valid, or the render's)."""
+    depth = read_depth(depth_path)
+    if cfg.surface_depth == "sensor":
+        depth = with_sensor_depth(depth, ctx.abspath(fr.depth_path), fr.depth_scale_m)
+    return depth
+
+
+def regrow_on_fused(rows: list[dict], depth_file: dict[int, Path], cams: dict[int, np.ndarray],
+                    points: dict[int, np.ndarray], spheres: dict[int, tuple[np.ndarray, float]],
+                    off_sensor: dict[int, np.ndarray], fruit_class: np.ndarray, frames: pd.DataFrame,
+                    out_dir: Path, cfg: Config, ctx: StageContext) -> None:
+    """regrow_passes after the first, on the written fused frames (PNGs in `out_dir`; `rows` their
+    panoptic_frames rows, `depth_file` and `cams` their depth PNG and pose): each pass grows the seen surface
+    of each fruit in `spheres` but not in `off_sensor` from its render points (`points`: fruit_points) and the
+    points of the pixels it holds in every fused frame (max_points_per_view per frame), then runs
+    regrow_hidden on every frame for the fruits it shows, rewriting the frames it changes (semantic from
+    `fruit_class`)."""
+    judged = {f: ball for f, ball in spheres.items() if f not in off_sensor}
+    if not cfg.regrow_min_px or not judged:
+        return
+
+    def fused_frame(row: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        fr = frames.loc[row["frame_id"]]
+        inst = read_label(out_dir / "instance" / f"{row['frame_id']:06d}.png", "fused instance")
+        return inst, placed_depth(depth_file[row["frame_id"]], fr, cfg, ctx), np.array([fr.fx, fr.fy, fr.cx, fr.cy])
+
+    for n in range(2, cfg.regrow_passes + 1):
+        grown: dict[int, list[np.ndarray]] = {f: [points[f]] if f in points else [] for f in judged}
+        for row in ctx.progress(rows, f"regrow pass {n}: seen surfaces"):
+            inst, depth, k = fused_frame(row)
+            v, u = np.nonzero((inst > 0) & (depth > 0))
+            v, u, ids, starts, ends = runs_by_key(v, u, inst[v, u])
+            for s0, s1 in zip(starts.tolist(), ends.tolist()):
+                if int(ids[s0]) in grown:
+                    pick = s0 + subsample(s1 - s0, cfg.max_points_per_view)
+                    grown[int(ids[s0])].append(unproject(depth, k, cams[row["frame_id"]], v[pick], u[pick]))
+        clouds = seen_surfaces({f: np.concatenate(p) for f, p in grown.items() if p}, judged, cfg)
+        for row in ctx.progress(rows, f"regrow pass {n}"):
+            inst, depth, k = fused_frame(row)
+            shown = np.unique(inst[inst > 0]).tolist()
+            before = inst.copy()
+            given = regrow_hidden(inst, depth, k, cams[row["frame_id"]], {f: judged[f] for f in shown if f in judged},
+                                  clouds, cfg.track_margin_m, image_pixels_for(cfg.regrow_min_px, inst.size))
+            if given:
+                ctx.count("pixels_regrown_on_grown_surfaces", given)
+                name = f"{row['frame_id']:06d}.png"
+                sem = read_label(out_dir / "semantic" / name, "fused semantic")
+                m = inst != before
+                sem[m] = fruit_class[inst[m]]
+                write_png(out_dir / "semantic" / name, sem)
+                write_png(out_dir / "instance" / name, inst)
 
 
 def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]:
@@ -1331,12 +1396,13 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
         for i in g:
             px[local[i].class_id] += local[i].n_px
         fruit_class[local[g[0]].fruit_id] = max(px, key=px.get)
-    spheres, clouds, off_sensor = {}, {}, {}
+    spheres, clouds, off_sensor, points = {}, {}, {}, {}
     if cfg.track_margin_m > 0:
         points = fruit_points(groups, local, slot_views)
         spheres = fruit_spheres(points, cfg.max_fruit_radius_m)
         clouds = seen_surfaces(points, spheres, cfg)
-        del points
+        if cfg.regrow_passes == 1:
+            points = {}
         off_sensor = render_off_sensor(spheres, fruit_render_gaps(groups, local, slot_views), cfg)
         ctx.count("spheres_off_the_sensor_depth", len(off_sensor))
         clouds = moved_surfaces(clouds, off_sensor)
@@ -1418,13 +1484,15 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
                      "depth_path": depth_path,
                      "n_fruits": len(present),
                      **dict(zip(POSE_COLS, pose_txyzq(r.c2w[None])[0].tolist()))})
+    n_fruits = len(groups)
     if seg_views:
         centres = {local[g[0]].fruit_id: (spheres[local[g[0]].fruit_id][0] if local[g[0]].fruit_id in spheres
                                           else gcentre[j]) for j, g in enumerate(groups)}
-        n_fruits = split_fruits(seg_views, in_frame, depth_file, cams, rows, spheres, clouds, off_sensor, centres,
-                                fruit_class, frames, dropped, out_dir, cfg, ctx)
-    else:
-        n_fruits = len(groups)
+        n_fruits, spheres, off_sensor, fruit_class = split_fruits(
+            seg_views, in_frame, depth_file, cams, rows, spheres, clouds, off_sensor, centres, fruit_class, frames,
+            dropped, out_dir, cfg, ctx)
+    if cfg.regrow_passes > 1:
+        regrow_on_fused(rows, depth_file, cams, points, spheres, off_sensor, fruit_class, frames, out_dir, cfg, ctx)
     slots = pd.DataFrame([{
         "window_id": lf.window_id, "slot": lf.slot, "part": lf.part, "fruit_id": lf.fruit_id,
         "class_id": lf.class_id, "n_frames": len({f for f, _ in lf.frames}), "n_px": lf.n_px,

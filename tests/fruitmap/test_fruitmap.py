@@ -686,6 +686,57 @@ def test_a_fruit_the_surface_gave_pixels_outside_its_slots_span_is_regrown_there
     assert (fused(2, None)[hidden] == 0).all() and (fused(2, None)[corner] == 1).all()
 
 
+def test_a_later_regrow_pass_brings_back_a_side_only_the_fused_frames_gave_the_fruit(tmp_path):
+    from pipeline.images import write_png
+    k, a, b, depth, who, truth, spheres, clouds = two_seen_fruits()
+    cls = THING_IDS[0]
+    x = (np.arange(80)[None] + 0.5 - k[2]) / k[0] * depth            # the row frame's x of each pixel's point
+    cap = front_cap(a)
+    third = a[0][0] - a[1] / 3
+    points = {1: cap[cap[:, 0] < third], 2: front_cap(b)}          # fruit 1's windows rendered its left third
+    left = (who == 0) & (x < third)
+    assert 12 < left.sum() < ((who == 0) & ~left).sum()
+    # frame 0: the rules gave fruit 1 its whole view; frame 1 shows its left third (the rest painted as leaf);
+    # frame 2 shows only fruit 2
+    shown = [truth, np.where((who == 0) & ~left, 0, truth), np.where(who == 0, 0, truth)]
+    out_dir, rows, frames = tmp_path / "panoptic", [], []
+    for kind in ("semantic", "instance", "depth"):
+        (out_dir / kind).mkdir(parents=True)
+    for fid, inst in enumerate(shown):
+        name = f"{fid:06d}.png"
+        write_png(out_dir / "instance" / name, inst.astype(np.uint16))
+        write_png(out_dir / "semantic" / name, np.where(inst > 0, cls, 1).astype(np.uint8))
+        write_png(out_dir / "depth" / name, np.round(depth * 1000).astype(np.uint16))
+        rows.append({"frame_id": fid, "n_fruits": len(np.unique(inst[inst > 0]))})
+        frames.append({"frame_id": fid, "fx": k[0], "fy": k[1], "cx": k[2], "cy": k[3],
+                       "depth_path": f"panoptic/depth/{name}", "depth_scale_m": 0.001})
+    frames = pd.DataFrame(frames).set_index("frame_id", drop=False)
+    depth_file = {fid: out_dir / "depth" / f"{fid:06d}.png" for fid in range(3)}
+    cams = {fid: np.eye(4) for fid in range(3)}
+    cfg = panoptic_fusion.Config(track_margin_m=0.01, regrow_passes=2)
+    ctx = StageContext(stage="panoptic_fusion", seq=SEQ, data_root=tmp_path, show_progress=False)
+    # on the surface its windows rendered, frame 1's hidden two thirds lie off it: the first pass gives nothing
+    first = panoptic_fusion.seen_surfaces(points, spheres, cfg)
+    assert panoptic_fusion.regrow_hidden(shown[1].copy(), depth, k, np.eye(4), spheres, first, 0.01, 12) == 0
+
+    def regrown(off_sensor: dict) -> list[np.ndarray]:
+        panoptic_fusion.regrow_on_fused(rows, depth_file, cams, points, spheres, off_sensor,
+                                        np.array([0, cls, cls], np.uint8), frames, out_dir, cfg, ctx)
+        return [read_label(out_dir / kind / f"{fid:06d}.png", kind) for kind in ("instance", "semantic")
+                for fid in range(3)]
+
+    # a fruit whose render lies off the sensor's surface is left out: nothing changes
+    assert all((got == want).all() for got, want in zip(regrown({1: np.zeros(3)})[:3], shown))
+    # the second pass adds frame 0's view to fruit 1's surface: frame 1 gets the rest of it back, with its
+    # class; frame 2, which does not show fruit 1, stays without it
+    inst0, inst1, inst2, _, sem1, _ = regrown({})
+    assert (inst0 == truth).all() and (inst1 == truth).all() and (inst2 == shown[2]).all()
+    assert (sem1[who == 0] == cls).all() and ctx.summary["pixels_regrown_on_grown_surfaces"] == (shown[1] != truth).sum()
+    assert [r["n_fruits"] for r in rows] == [2, 2, 1]
+    with pytest.raises(ValueError, match="regrow_passes"):
+        panoptic_fusion.Config(regrow_passes=0)
+
+
 def test_a_fruit_cut_off_by_the_image_edge_takes_its_sliver_there_from_its_seen_surface():
     k = np.array([100.0, 100.0, 40.0, 30.0])
     a, b = (np.array([-0.2, 0.0, 0.5]), 0.03), (np.array([0.0, 0.0, 0.5]), 0.03)  # a: cut off by the left edge
@@ -892,14 +943,17 @@ def test_split_fruits_rewrites_the_fused_frames_of_a_fruit_painted_over_two(tmp_
                                                             cfg.min_group_px, cfg.max_points_per_view):
                 seg_views[f].append((fid, *view))
         ctx = StageContext(stage="panoptic_fusion", seq=SEQ, data_root=tmp_path, show_progress=False)
-        n = panoptic_fusion.split_fruits(seg_views, {f: {4} for f in range(3)},
-                                         {f: tmp_path / "depth" / f"{f:06d}.png" for f in range(3)},
-                                         {f: np.eye(4) for f in range(3)}, rows, {}, {}, set(), fruit_centres,
-                                         np.full(n_ids + 1, cls, np.uint8), frames, {}, out_dir, cfg, ctx)
-        return n, [read_label(out_dir / "instance" / f"{f:06d}.png", "x") for f in range(3)], ctx.summary
+        n, spheres, _, classes = panoptic_fusion.split_fruits(
+            seg_views, {f: {4} for f in range(3)}, {f: tmp_path / "depth" / f"{f:06d}.png" for f in range(3)},
+            {f: np.eye(4) for f in range(3)}, rows, {}, {}, set(), fruit_centres, np.full(n_ids + 1, cls, np.uint8),
+            frames, {}, out_dir, cfg, ctx)
+        assert len(classes) == n + 1 and (classes[1:] == cls).all()
+        return n, [read_label(out_dir / "instance" / f"{f:06d}.png", "x") for f in range(3)], ctx.summary, spheres
 
     # fruit 4 (no plausible sphere: it holds two fruits) keeps the larger, the other becomes fruit 5
-    n, insts, summary = run({4: (a[0] + b[0]) / 2}, 4)
+    n, insts, summary, spheres = run({4: (a[0] + b[0]) / 2}, 4)
+    # both clusters fit a sphere: fruit 4 and the new fruit 5 take theirs (for the later rules and passes)
+    assert sorted(spheres) == [4, 5]
     assert n == 5 and summary["fruits_split_by_detector"] == 1 and [r["n_fruits"] for r in rows] == [2, 2, 2]
     big = 4 if (who == 0).sum() > (who == 1).sum() else 5
     for inst in insts:
@@ -907,8 +961,8 @@ def test_split_fruits_rewrites_the_fused_frames_of_a_fruit_painted_over_two(tmp_
         assert (inst[who < 0] == 0).all()
     # where another fruit's centre lies at the split-off cluster's sphere, the cluster joins that fruit
     other = 1 if big == 4 else 0
-    n, insts, _ = run({4: (a[0] + b[0]) / 2, 6: (a, b)[other][0] + 0.01}, 6)
-    assert n == 6 and all(set(np.unique(inst[who == other])) == {6} for inst in insts)
+    n, insts, _, spheres = run({4: (a[0] + b[0]) / 2, 6: (a, b)[other][0] + 0.01}, 6)
+    assert n == 6 and sorted(spheres) == [4, 6] and all(set(np.unique(inst[who == other])) == {6} for inst in insts)
 
 
 def test_the_detector_fruit_segments_leave_out_stuff_and_the_segments_the_depth_filter_dropped(tmp_path):
