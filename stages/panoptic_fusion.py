@@ -181,9 +181,11 @@ class Config:
     detector_split_m), adds to the seen surface of each fruit with a sphere (whose render lies on the sensor's
     surface: off_sphere_factor) the points of the pixels it holds in the fused frames, placed with
     surface_depth (max_points_per_view per frame), and runs regrow_hidden again on every frame for the fruits
-    it shows. A side of a fruit its windows painted as leaf or as a neighbour, and that the rules gave back in
-    some frames, then counts as its surface in the frames where it is hidden again. Each pass reads the fused
-    frames twice; 1 = the first pass only."""
+    in view there: from the frame before the first fused frame that shows the fruit to the frame after the
+    last. A side of a fruit its windows painted as leaf or as a neighbour, and that the rules gave back in some
+    frames, then counts as its surface in the frames where it is hidden again; a fruit entering or leaving the
+    view, or lost behind a leaf for a frame, comes back in those frames. Each pass reads the fused frames
+    twice; 1 = the first pass only."""
     detector_split_m: float = 0.03
     """metres, >= 0; 0 = off. A fused fruit that the detector shows as several fruits is split. In every fused
     frame each detector segment lying mostly on fused fruits is given to the fruit holding most of it (at least
@@ -1225,8 +1227,10 @@ def regrow_on_fused(rows: list[dict], depth_file: dict[int, Path], cams: dict[in
     panoptic_frames rows, `depth_file` and `cams` their depth PNG and pose): each pass grows the seen surface
     of each fruit in `spheres` but not in `off_sensor` from its render points (`points`: fruit_points) and the
     points of the pixels it holds in every fused frame (max_points_per_view per frame), then runs
-    regrow_hidden on every frame for the fruits it shows, rewriting the frames it changes (semantic from
-    `fruit_class`)."""
+    regrow_hidden on every frame for the fruits in view there: those the fused frames show from the frame
+    before the first that shows them to the frame after the last (a fruit the fused frames lose for a frame or
+    two behind a leaf, or one frame before it is first shown as it enters the view), rewriting the frames it
+    changes (semantic from `fruit_class`, the rows' fruit counts)."""
     judged = {f: ball for f, ball in spheres.items() if f not in off_sensor}
     if not cfg.regrow_min_px or not judged:
         return
@@ -1238,8 +1242,11 @@ def regrow_on_fused(rows: list[dict], depth_file: dict[int, Path], cams: dict[in
 
     for n in range(2, cfg.regrow_passes + 1):
         grown: dict[int, list[np.ndarray]] = {f: [points[f]] if f in points else [] for f in judged}
-        for row in ctx.progress(rows, f"regrow pass {n}: seen surfaces"):
+        shown: dict[int, list[int]] = {}   # fruit -> [first, last] position in `rows` of a frame showing it
+        for at, row in enumerate(ctx.progress(rows, f"regrow pass {n}: seen surfaces")):
             inst, depth, k = fused_frame(row)
+            for f in np.unique(inst[inst > 0]).tolist():
+                shown.setdefault(f, [at, at])[1] = at
             v, u = np.nonzero((inst > 0) & (depth > 0))
             v, u, ids, starts, ends = runs_by_key(v, u, inst[v, u])
             for s0, s1 in zip(starts.tolist(), ends.tolist()):
@@ -1247,13 +1254,14 @@ def regrow_on_fused(rows: list[dict], depth_file: dict[int, Path], cams: dict[in
                     pick = s0 + subsample(s1 - s0, cfg.max_points_per_view)
                     grown[int(ids[s0])].append(unproject(depth, k, cams[row["frame_id"]], v[pick], u[pick]))
         clouds = seen_surfaces({f: np.concatenate(p) for f, p in grown.items() if p}, judged, cfg)
-        for row in ctx.progress(rows, f"regrow pass {n}"):
+        for at, row in enumerate(ctx.progress(rows, f"regrow pass {n}")):
             inst, depth, k = fused_frame(row)
-            shown = np.unique(inst[inst > 0]).tolist()
+            in_view = {f: ball for f, ball in judged.items() if f in shown and shown[f][0] - 1 <= at <= shown[f][1] + 1}
             before = inst.copy()
-            given = regrow_hidden(inst, depth, k, cams[row["frame_id"]], {f: judged[f] for f in shown if f in judged},
-                                  clouds, cfg.track_margin_m, image_pixels_for(cfg.regrow_min_px, inst.size))
+            given = regrow_hidden(inst, depth, k, cams[row["frame_id"]], in_view, clouds, cfg.track_margin_m,
+                                  image_pixels_for(cfg.regrow_min_px, inst.size))
             if given:
+                row["n_fruits"] = int(len(np.unique(inst[inst > 0])))
                 ctx.count("pixels_regrown_on_grown_surfaces", given)
                 name = f"{row['frame_id']:06d}.png"
                 sem = read_label(out_dir / "semantic" / name, "fused semantic")

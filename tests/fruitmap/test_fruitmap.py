@@ -686,7 +686,7 @@ def test_a_fruit_the_surface_gave_pixels_outside_its_slots_span_is_regrown_there
     assert (fused(2, None)[hidden] == 0).all() and (fused(2, None)[corner] == 1).all()
 
 
-def test_a_later_regrow_pass_brings_back_a_side_only_the_fused_frames_gave_the_fruit(tmp_path):
+def test_a_later_regrow_pass_brings_back_a_fruit_on_the_surface_its_fused_frames_show(tmp_path):
     from pipeline.images import write_png
     k, a, b, depth, who, truth, spheres, clouds = two_seen_fruits()
     cls = THING_IDS[0]
@@ -697,8 +697,8 @@ def test_a_later_regrow_pass_brings_back_a_side_only_the_fused_frames_gave_the_f
     left = (who == 0) & (x < third)
     assert 12 < left.sum() < ((who == 0) & ~left).sum()
     # frame 0: the rules gave fruit 1 its whole view; frame 1 shows its left third (the rest painted as leaf);
-    # frame 2 shows only fruit 2
-    shown = [truth, np.where((who == 0) & ~left, 0, truth), np.where(who == 0, 0, truth)]
+    # frames 2 and 3 show only fruit 2
+    shown = [truth, np.where((who == 0) & ~left, 0, truth), np.where(who == 0, 0, truth), np.where(who == 0, 0, truth)]
     out_dir, rows, frames = tmp_path / "panoptic", [], []
     for kind in ("semantic", "instance", "depth"):
         (out_dir / kind).mkdir(parents=True)
@@ -711,8 +711,8 @@ def test_a_later_regrow_pass_brings_back_a_side_only_the_fused_frames_gave_the_f
         frames.append({"frame_id": fid, "fx": k[0], "fy": k[1], "cx": k[2], "cy": k[3],
                        "depth_path": f"panoptic/depth/{name}", "depth_scale_m": 0.001})
     frames = pd.DataFrame(frames).set_index("frame_id", drop=False)
-    depth_file = {fid: out_dir / "depth" / f"{fid:06d}.png" for fid in range(3)}
-    cams = {fid: np.eye(4) for fid in range(3)}
+    depth_file = {fid: out_dir / "depth" / f"{fid:06d}.png" for fid in range(4)}
+    cams = {fid: np.eye(4) for fid in range(4)}
     cfg = panoptic_fusion.Config(track_margin_m=0.01, regrow_passes=2)
     ctx = StageContext(stage="panoptic_fusion", seq=SEQ, data_root=tmp_path, show_progress=False)
     # on the surface its windows rendered, frame 1's hidden two thirds lie off it: the first pass gives nothing
@@ -723,16 +723,18 @@ def test_a_later_regrow_pass_brings_back_a_side_only_the_fused_frames_gave_the_f
         panoptic_fusion.regrow_on_fused(rows, depth_file, cams, points, spheres, off_sensor,
                                         np.array([0, cls, cls], np.uint8), frames, out_dir, cfg, ctx)
         return [read_label(out_dir / kind / f"{fid:06d}.png", kind) for kind in ("instance", "semantic")
-                for fid in range(3)]
+                for fid in range(4)]
 
     # a fruit whose render lies off the sensor's surface is left out: nothing changes
-    assert all((got == want).all() for got, want in zip(regrown({1: np.zeros(3)})[:3], shown))
+    assert all((got == want).all() for got, want in zip(regrown({1: np.zeros(3)})[:4], shown))
     # the second pass adds frame 0's view to fruit 1's surface: frame 1 gets the rest of it back, with its
-    # class; frame 2, which does not show fruit 1, stays without it
-    inst0, inst1, inst2, _, sem1, _ = regrown({})
-    assert (inst0 == truth).all() and (inst1 == truth).all() and (inst2 == shown[2]).all()
-    assert (sem1[who == 0] == cls).all() and ctx.summary["pixels_regrown_on_grown_surfaces"] == (shown[1] != truth).sum()
-    assert [r["n_fruits"] for r in rows] == [2, 2, 1]
+    # class, and so does frame 2, the one after the last that shows it (a fruit leaving the view, or lost
+    # behind a leaf for a frame); frame 3, further on, stays without it
+    inst0, inst1, inst2, inst3, _, sem1, sem2, _ = regrown({})
+    assert (inst0 == truth).all() and (inst1 == truth).all() and (inst2 == truth).all() and (inst3 == shown[3]).all()
+    assert (sem1[who == 0] == cls).all() and (sem2[who == 0] == cls).all()
+    assert ctx.summary["pixels_regrown_on_grown_surfaces"] == (shown[1] != truth).sum() + (who == 0).sum()
+    assert [r["n_fruits"] for r in rows] == [2, 2, 2, 1]
     with pytest.raises(ValueError, match="regrow_passes"):
         panoptic_fusion.Config(regrow_passes=0)
 
