@@ -184,8 +184,9 @@ class Config:
     in view there: from the frame before the first fused frame that shows the fruit to the frame after the
     last. A side of a fruit its windows painted as leaf or as a neighbour, and that the rules gave back in some
     frames, then counts as its surface in the frames where it is hidden again; a fruit entering or leaving the
-    view, or lost behind a leaf for a frame, comes back in those frames. Each pass reads the fused frames
-    twice; 1 = the first pass only."""
+    view, or lost behind a leaf for a frame, comes back in those frames. A fused fruit whose render points fit
+    no plausible sphere (a cap seen from one side) takes part with the sphere its grown points fit, where they
+    fit one. Each pass reads the fused frames twice; 1 = the first pass only."""
     detector_split_m: float = 0.03
     """metres, >= 0; 0 = off. A fused fruit that the detector shows as several fruits is split. In every fused
     frame each detector segment lying mostly on fused fruits is given to the fruit holding most of it (at least
@@ -1204,8 +1205,8 @@ def split_fruits(seg_views: dict, in_frame: dict[int, set[int]], depth_file: dic
             surface_rules(inst, segments, depth, k, c2w, sphere_of, cloud_of, off_sensor, cfg, ctx)
         m = inst != before
         sem[m] = fruit_class[inst[m]]
-        write_png(out_dir / "semantic" / name, sem)
-        write_png(out_dir / "instance" / name, inst)
+        write_png(out_dir / "semantic" / name, sem.astype(np.uint8))
+        write_png(out_dir / "instance" / name, inst.astype(np.uint16))   # read as int32: ids past 255 stay
         row["n_fruits"] = int(len(np.unique(inst[inst > 0])))
     return n_fruits, sphere_of, off_sensor, fruit_class
 
@@ -1230,9 +1231,12 @@ def regrow_on_fused(rows: list[dict], depth_file: dict[int, Path], cams: dict[in
     regrow_hidden on every frame for the fruits in view there: those the fused frames show from the frame
     before the first that shows them to the frame after the last (a fruit the fused frames lose for a frame or
     two behind a leaf, or one frame before it is first shown as it enters the view), rewriting the frames it
-    changes (semantic from `fruit_class`, the rows' fruit counts)."""
+    changes (semantic from `fruit_class`, the rows' fruit counts). A fruit of `points` without a sphere (its
+    render points fit no plausible one: a cap seen from one side) joins with the sphere its grown points fit,
+    where they fit one."""
     judged = {f: ball for f, ball in spheres.items() if f not in off_sensor}
-    if not cfg.regrow_min_px or not judged:
+    unfitted = [f for f in points if f not in spheres and f not in off_sensor]
+    if not cfg.regrow_min_px or not (judged or unfitted):
         return
 
     def fused_frame(row: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -1241,7 +1245,7 @@ def regrow_on_fused(rows: list[dict], depth_file: dict[int, Path], cams: dict[in
         return inst, placed_depth(depth_file[row["frame_id"]], fr, cfg, ctx), np.array([fr.fx, fr.fy, fr.cx, fr.cy])
 
     for n in range(2, cfg.regrow_passes + 1):
-        grown: dict[int, list[np.ndarray]] = {f: [points[f]] if f in points else [] for f in judged}
+        grown: dict[int, list[np.ndarray]] = {f: [points[f]] if f in points else [] for f in [*judged, *unfitted]}
         shown: dict[int, list[int]] = {}   # fruit -> [first, last] position in `rows` of a frame showing it
         for at, row in enumerate(ctx.progress(rows, f"regrow pass {n}: seen surfaces")):
             inst, depth, k = fused_frame(row)
@@ -1253,7 +1257,11 @@ def regrow_on_fused(rows: list[dict], depth_file: dict[int, Path], cams: dict[in
                 if int(ids[s0]) in grown:
                     pick = s0 + subsample(s1 - s0, cfg.max_points_per_view)
                     grown[int(ids[s0])].append(unproject(depth, k, cams[row["frame_id"]], v[pick], u[pick]))
-        clouds = seen_surfaces({f: np.concatenate(p) for f, p in grown.items() if p}, judged, cfg)
+        grown_points = {f: np.concatenate(p) for f, p in grown.items() if p}
+        judged.update(fruit_spheres({f: grown_points[f] for f in unfitted if f in grown_points},
+                                    cfg.max_fruit_radius_m))
+        unfitted = [f for f in unfitted if f not in judged]
+        clouds = seen_surfaces(grown_points, judged, cfg)
         for at, row in enumerate(ctx.progress(rows, f"regrow pass {n}")):
             inst, depth, k = fused_frame(row)
             in_view = {f: ball for f, ball in judged.items() if f in shown and shown[f][0] - 1 <= at <= shown[f][1] + 1}
@@ -1267,8 +1275,8 @@ def regrow_on_fused(rows: list[dict], depth_file: dict[int, Path], cams: dict[in
                 sem = read_label(out_dir / "semantic" / name, "fused semantic")
                 m = inst != before
                 sem[m] = fruit_class[inst[m]]
-                write_png(out_dir / "semantic" / name, sem)
-                write_png(out_dir / "instance" / name, inst)
+                write_png(out_dir / "semantic" / name, sem.astype(np.uint8))
+                write_png(out_dir / "instance" / name, inst.astype(np.uint16))
 
 
 def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]:

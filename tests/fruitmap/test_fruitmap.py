@@ -688,29 +688,25 @@ def test_a_fruit_the_surface_gave_pixels_outside_its_slots_span_is_regrown_there
 
 def test_a_later_regrow_pass_brings_back_a_fruit_on_the_surface_its_fused_frames_show(tmp_path):
     from pipeline.images import write_png
-    k, a, b, depth, who, truth, spheres, clouds = two_seen_fruits()
+    k, a, b, depth, who, truth, _, _ = two_seen_fruits()
     cls = THING_IDS[0]
+    truth = np.where(truth == 2, 300, truth)                         # the neighbour: an id past 8 bits
+    spheres = {1: a, 300: b}
     x = (np.arange(80)[None] + 0.5 - k[2]) / k[0] * depth            # the row frame's x of each pixel's point
     cap = front_cap(a)
     third = a[0][0] - a[1] / 3
-    points = {1: cap[cap[:, 0] < third], 2: front_cap(b)}          # fruit 1's windows rendered its left third
+    points = {1: cap[cap[:, 0] < third], 300: front_cap(b)}        # fruit 1's windows rendered its left third
     left = (who == 0) & (x < third)
     assert 12 < left.sum() < ((who == 0) & ~left).sum()
     # frame 0: the rules gave fruit 1 its whole view; frame 1 shows its left third (the rest painted as leaf);
     # frames 2 and 3 show only fruit 2
     shown = [truth, np.where((who == 0) & ~left, 0, truth), np.where(who == 0, 0, truth), np.where(who == 0, 0, truth)]
-    out_dir, rows, frames = tmp_path / "panoptic", [], []
+    out_dir = tmp_path / "panoptic"
     for kind in ("semantic", "instance", "depth"):
         (out_dir / kind).mkdir(parents=True)
-    for fid, inst in enumerate(shown):
-        name = f"{fid:06d}.png"
-        write_png(out_dir / "instance" / name, inst.astype(np.uint16))
-        write_png(out_dir / "semantic" / name, np.where(inst > 0, cls, 1).astype(np.uint8))
-        write_png(out_dir / "depth" / name, np.round(depth * 1000).astype(np.uint16))
-        rows.append({"frame_id": fid, "n_fruits": len(np.unique(inst[inst > 0]))})
-        frames.append({"frame_id": fid, "fx": k[0], "fy": k[1], "cx": k[2], "cy": k[3],
-                       "depth_path": f"panoptic/depth/{name}", "depth_scale_m": 0.001})
-    frames = pd.DataFrame(frames).set_index("frame_id", drop=False)
+    frames = pd.DataFrame([{"frame_id": fid, "fx": k[0], "fy": k[1], "cx": k[2], "cy": k[3],
+                            "depth_path": f"panoptic/depth/{fid:06d}.png", "depth_scale_m": 0.001} for fid in range(4)])
+    frames = frames.set_index("frame_id", drop=False)
     depth_file = {fid: out_dir / "depth" / f"{fid:06d}.png" for fid in range(4)}
     cams = {fid: np.eye(4) for fid in range(4)}
     cfg = panoptic_fusion.Config(track_margin_m=0.01, regrow_passes=2)
@@ -719,22 +715,35 @@ def test_a_later_regrow_pass_brings_back_a_fruit_on_the_surface_its_fused_frames
     first = panoptic_fusion.seen_surfaces(points, spheres, cfg)
     assert panoptic_fusion.regrow_hidden(shown[1].copy(), depth, k, np.eye(4), spheres, first, 0.01, 12) == 0
 
-    def regrown(off_sensor: dict) -> list[np.ndarray]:
-        panoptic_fusion.regrow_on_fused(rows, depth_file, cams, points, spheres, off_sensor,
-                                        np.array([0, cls, cls], np.uint8), frames, out_dir, cfg, ctx)
+    def regrown(balls: dict, off_sensor: dict, config=cfg) -> tuple[list[np.ndarray], list[dict]]:
+        rows = []
+        for fid, inst in enumerate(shown):
+            name = f"{fid:06d}.png"
+            write_png(out_dir / "instance" / name, inst.astype(np.uint16))
+            write_png(out_dir / "semantic" / name, np.where(inst > 0, cls, 1).astype(np.uint8))
+            write_png(out_dir / "depth" / name, np.round(depth * 1000).astype(np.uint16))
+            rows.append({"frame_id": fid, "n_fruits": len(np.unique(inst[inst > 0]))})
+        ctx.summary.clear()
+        panoptic_fusion.regrow_on_fused(rows, depth_file, cams, points, balls, off_sensor,
+                                        np.r_[0, np.full(300, cls)].astype(np.uint8), frames, out_dir, config, ctx)
         return [read_label(out_dir / kind / f"{fid:06d}.png", kind) for kind in ("instance", "semantic")
-                for fid in range(4)]
+                for fid in range(4)], rows
 
     # a fruit whose render lies off the sensor's surface is left out: nothing changes
-    assert all((got == want).all() for got, want in zip(regrown({1: np.zeros(3)})[:4], shown))
+    assert all((got == want).all() for got, want in zip(regrown(spheres, {1: np.zeros(3)})[0][:4], shown))
     # the second pass adds frame 0's view to fruit 1's surface: frame 1 gets the rest of it back, with its
     # class, and so does frame 2, the one after the last that shows it (a fruit leaving the view, or lost
-    # behind a leaf for a frame); frame 3, further on, stays without it
-    inst0, inst1, inst2, inst3, _, sem1, sem2, _ = regrown({})
-    assert (inst0 == truth).all() and (inst1 == truth).all() and (inst2 == truth).all() and (inst3 == shown[3]).all()
-    assert (sem1[who == 0] == cls).all() and (sem2[who == 0] == cls).all()
-    assert ctx.summary["pixels_regrown_on_grown_surfaces"] == (shown[1] != truth).sum() + (who == 0).sum()
-    assert [r["n_fruits"] for r in rows] == [2, 2, 2, 1]
+    # behind a leaf for a frame); frame 3, further on, stays without it. So it does for a fruit without a
+    # sphere (its render points fit none), which takes the sphere its grown points fit
+    for balls in (spheres, {300: b}):
+        (inst0, inst1, inst2, inst3, _, sem1, sem2, _), rows = regrown(balls, {})
+        assert (inst0 == truth).all() and (inst1 == truth).all() and (inst2 == truth).all()
+        assert (inst3 == shown[3]).all() and (sem1[who == 0] == cls).all() and (sem2[who == 0] == cls).all()
+        assert ctx.summary["pixels_regrown_on_grown_surfaces"] == (shown[1] != truth).sum() + (who == 0).sum()
+        assert [r["n_fruits"] for r in rows] == [2, 2, 2, 1]
+    # but not where its grown points fit no plausible sphere (here: none of a fruit's size is allowed)
+    small = panoptic_fusion.Config(track_margin_m=0.01, regrow_passes=2, max_fruit_radius_m=0.02)
+    assert all((got == want).all() for got, want in zip(regrown({300: b}, {}, small)[0][:4], shown))
     with pytest.raises(ValueError, match="regrow_passes"):
         panoptic_fusion.Config(regrow_passes=0)
 
@@ -963,6 +972,9 @@ def test_split_fruits_rewrites_the_fused_frames_of_a_fruit_painted_over_two(tmp_
         assert (inst[who < 0] == 0).all()
     # where another fruit's centre lies at the split-off cluster's sphere, the cluster joins that fruit
     other = 1 if big == 4 else 0
+    # a new fruit past id 255 keeps its id in the rewritten 16-bit PNGs
+    n, insts, _, _ = run({4: (a[0] + b[0]) / 2}, 299)
+    assert n == 300 and all(set(np.unique(inst[who >= 0]).tolist()) == {4, 300} for inst in insts)
     n, insts, _, spheres = run({4: (a[0] + b[0]) / 2, 6: (a, b)[other][0] + 0.01}, 6)
     assert n == 6 and sorted(spheres) == [4, 6] and all(set(np.unique(inst[who == other])) == {6} for inst in insts)
 
