@@ -1115,6 +1115,13 @@ def compose(labelled: list[tuple[np.ndarray, np.ndarray, np.ndarray]], wins: lis
     return out_sem, out_inst, depth, bool((src > 0).any())
 
 
+def write_fused(out_dir: Path, name: str, sem: np.ndarray, inst: np.ndarray) -> None:
+    """Write one fused frame's semantic (8-bit) and instance (16-bit) PNGs under `out_dir`. The label arrays
+    may be int32 (read_label); cv2 would write those as 8-bit, turning every fruit id past 255 into 255."""
+    write_png(out_dir / "semantic" / name, sem.astype(np.uint8))
+    write_png(out_dir / "instance" / name, inst.astype(np.uint16))
+
+
 def split_fruits(seg_views: dict, in_frame: dict[int, set[int]], depth_file: dict[int, Path],
                  cams: dict[int, np.ndarray], rows: list[dict], spheres: dict, clouds: dict[int, cKDTree],
                  off_sensor: dict[int, np.ndarray], fruit_centres: dict[int, np.ndarray], fruit_class: np.ndarray,
@@ -1205,8 +1212,7 @@ def split_fruits(seg_views: dict, in_frame: dict[int, set[int]], depth_file: dic
             surface_rules(inst, segments, depth, k, c2w, sphere_of, cloud_of, off_sensor, cfg, ctx)
         m = inst != before
         sem[m] = fruit_class[inst[m]]
-        write_png(out_dir / "semantic" / name, sem.astype(np.uint8))
-        write_png(out_dir / "instance" / name, inst.astype(np.uint16))   # read as int32: ids past 255 stay
+        write_fused(out_dir, name, sem, inst)
         row["n_fruits"] = int(len(np.unique(inst[inst > 0])))
     return n_fruits, sphere_of, off_sensor, fruit_class
 
@@ -1275,8 +1281,7 @@ def regrow_on_fused(rows: list[dict], depth_file: dict[int, Path], cams: dict[in
                 sem = read_label(out_dir / "semantic" / name, "fused semantic")
                 m = inst != before
                 sem[m] = fruit_class[inst[m]]
-                write_png(out_dir / "semantic" / name, sem.astype(np.uint8))
-                write_png(out_dir / "instance" / name, inst.astype(np.uint16))
+                write_fused(out_dir, name, sem, inst)
 
 
 def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]:
@@ -1490,8 +1495,7 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
         depth_file[fid] = out_dir / "depth" / f"{fid:06d}.png" if composed else ctx.abspath(depth_path)
         cams[fid] = r.c2w
         name = f"{fid:06d}.png"
-        write_png(out_dir / "semantic" / name, out_sem)
-        write_png(out_dir / "instance" / name, out_inst)
+        write_fused(out_dir, name, out_sem, out_inst)
         rows.append({"frame_id": fid, "stamp_ns": int(fr.stamp_ns), "window_id": wid, "offset": int(r.offset),
                      "n_windows": int(n_win[fid]),
                      "semantic_path": ctx.relpath("panoptic", f"semantic/{name}"),
