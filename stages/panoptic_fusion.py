@@ -203,12 +203,13 @@ class Config:
     miss the neighbour in those frames). The cluster with the most pixels keeps the fruit's id;
     another joins an existing fruit at its place (centres within max_match_distance_m, or one inside the
     other's sphere) or becomes a new fruit (ids after those of the row). In each frame a cluster's segments
-    go to it and the fruit's other pixels to the cluster whose sphere they lie deepest in (track_margin_m and
-    detector_fill then run again with those spheres); where a cluster has no plausible sphere, to the cluster
-    whose seen surface (its segments' points) lies nearest, a cluster without a segment in the frame taking
-    only those within track_margin_m of its surface. About the largest shift of a fruit's seen-surface centre
-    between two neighbouring frames (it moves as the fruit enters the view or hides behind a leaf), well under
-    the distance of two touching fruits' centres. Needs detector output."""
+    go to it, the fruit's other pixels within track_margin_m of a cluster's seen surface (its segments'
+    points) to the cluster whose surface lies nearest, and the rest to the cluster whose sphere they lie
+    deepest in (track_margin_m and detector_fill then run again with those spheres) or, where a cluster has no
+    plausible sphere, to the nearest surface's cluster where the detector shows it in the frame. About the
+    largest shift of a fruit's seen-surface centre between two neighbouring frames (it moves as the fruit
+    enters the view or hides behind a leaf), well under the distance of two touching fruits' centres. Needs
+    detector output."""
     compose_shared_frames: bool = True
     """in a frame several overlapping windows rendered, take each fruit's pixels from the window that saw the
     fruit in the most rendered frames (then pixels), not every pixel from the window whose centre is nearest.
@@ -1020,33 +1021,43 @@ def split_by_detector(inst: np.ndarray, segments: np.ndarray, depth: np.ndarray,
                       seg_cluster: dict[int, int], min_px: int, surfaces: list[cKDTree] | None = None,
                       margin_m: float = 0.0) -> int:
     """Hand a fused fruit's pixels of one frame (`inst`, changed in place) to the fruits it holds: the pixels of
-    a detector segment of a cluster (`seg_cluster`: segment id -> index into `ids`) go to that cluster's id,
-    its other pixels with a depth to the id of the sphere (centre, radius; `spheres`) they lie deepest in
-    (distance / radius), and a cluster without a segment in the frame that would get fewer than min_px pixels
-    leaves them to the first (stray pixels near a fruit that is not in view). Without spheres (`spheres`
-    None), the other pixels go to the cluster whose seen surface (`surfaces`: k-d trees of its segments'
-    points) lies nearest, and a cluster without a segment in the frame takes only those within margin_m of
-    its surface: the sliver of a fruit entering the view before the detector shows it. Returns the pixels
-    moved."""
+    a detector segment of a cluster (`seg_cluster`: segment id -> index into `ids`) go to that cluster's id.
+    Its other pixels with a depth that lie within margin_m of a cluster's seen surface (`surfaces`: k-d trees
+    of each cluster's segments' points; None = not used) go to the cluster whose surface lies nearest: the
+    sliver of a fruit entering the view before the detector shows it, which may lie inside a larger
+    neighbour's sphere (spheres fitted to elongated fruits seen from one side overlap). The rest go to the id
+    of the sphere (centre, radius; `spheres`) they lie deepest in (distance / radius), and a cluster without a
+    segment in the frame that would get fewer than min_px pixels in all leaves those its sphere gave it to the
+    first (stray pixels near a fruit that is not in view). Without spheres (`spheres` None), the rest go to
+    the cluster whose seen surface lies nearest where that cluster has a segment in the frame, else to the
+    first. Returns the pixels moved."""
+    if spheres is None and surfaces is None:
+        raise ValueError("split_by_detector needs the clusters' spheres or their seen surfaces")
     mine = inst == fruit
     target = np.full(inst.shape, -1)
     for sid, j in seg_cluster.items():
         target[mine & (segments == sid)] = j
     v, u = np.nonzero(mine & (target < 0) & (depth > 0))
     shown = set(seg_cluster.values())
-    if len(v) and spheres is None:
-        gap = np.stack([tree.query(unproject(depth, k, c2w, v, u))[0] for tree in surfaces], axis=1)
-        near = gap.argmin(1)
-        near[~np.isin(near, list(shown)) & (gap.min(1) > margin_m)] = 0
-        target[v, u] = near
-    elif len(v):
+    if len(v):
         p = unproject(depth, k, c2w, v, u)
-        centres = np.stack([c for c, _ in spheres])
-        radii = np.array([r for _, r in spheres])
-        target[v, u] = (np.linalg.norm(p[:, None] - centres[None], axis=2) / radii).argmin(1)
-        for j in range(1, len(ids)):
-            if j not in shown and np.count_nonzero(target == j) < min_px:
-                target[target == j] = 0
+        on_surface = np.zeros(len(v), bool)
+        if surfaces is not None:
+            gap = np.stack([tree.query(p)[0] for tree in surfaces], axis=1)
+            on_surface = gap.min(1) <= margin_m
+        if spheres is None:
+            near = gap.argmin(1)
+            near[~np.isin(near, list(shown)) & ~on_surface] = 0
+        else:
+            centres = np.stack([c for c, _ in spheres])
+            radii = np.array([r for _, r in spheres])
+            near = (np.linalg.norm(p[:, None] - centres[None], axis=2) / radii).argmin(1)
+            if on_surface.any():
+                near[on_surface] = gap[on_surface].argmin(1)
+            for j in range(1, len(ids)):
+                if j not in shown and np.count_nonzero(near == j) < min_px:
+                    near[(near == j) & ~on_surface] = 0
+        target[v, u] = near
     new = np.where(target >= 0, np.asarray(ids)[np.maximum(target, 0)], inst)
     moved = int(np.count_nonzero(mine & (new != fruit)))
     inst[mine] = new[mine]
@@ -1181,9 +1192,9 @@ def split_fruits(seg_views: dict, in_frame: dict[int, set[int]], depth_file: dic
                     off_sensor.pop(g, None)   # fitted to its segments' sensor points
                     cloud_of.pop(g, None)
                     cloud_of.update(seen_surfaces({g: seen[j]}, {g: ball}, cfg))
-            surfaces = None
-        else:  # the nearest seen surface: the points of each cluster's segments
-            balls, surfaces = None, [cKDTree(pts) for pts in seen]
+        else:
+            balls = None
+        surfaces = [cKDTree(pts) for pts in seen]   # each cluster's seen surface: its segments' points
         plans[f] = (ids, balls, seg_cluster, surfaces)
         ctx.count("fruits_split_by_detector")
     if not plans:

@@ -915,6 +915,25 @@ def test_a_fused_fruit_split_by_the_detector_hands_its_pixels_to_the_fruits_it_h
                                               10, surfaces, 0.01)
     assert moved == near_b.sum() and (inst[v[near_b], u[near_b]] == 12).all()
     assert (inst[v[~near_b], u[~near_b]] == 4).all()
+    # with spheres, pixels on a cluster's seen surface go to that cluster first: b's sliver (fewer than min_px,
+    # no segment of b in the frame) joins b, and b's pixels leave a sphere fitted too wide for a, which holds
+    # them deeper than b's (a sphere fitted to an elongated fruit seen from one side)
+    surfaces = [cKDTree(pts[on_a]), cKDTree(pts[on_b])]
+    inst = np.where(who >= 0, 4, 0).astype(np.uint16)
+    inst[(who == 1) & ~few] = 0
+    assert panoptic_fusion.split_by_detector(inst, only_a, depth, k, np.eye(4), 4, [4, 12], [a, b], {8: 0}, 10,
+                                             surfaces, 0.01) == few.sum()
+    assert (inst[few] == 12).all() and (inst[who == 0] == 4).all()
+    wide = (a[0] + [0.02, 0.0, 0.0], 0.07)
+    inst = np.where(who >= 0, 4, 0).astype(np.uint16)
+    panoptic_fusion.split_by_detector(inst, only_a, depth, k, np.eye(4), 4, [4, 12], [wide, b], {8: 0}, min_px=10)
+    assert (inst[who == 1] == 4).sum() > 10                        # by the spheres alone b's pixels stay with a
+    inst = np.where(who >= 0, 4, 0).astype(np.uint16)
+    moved = panoptic_fusion.split_by_detector(inst, only_a, depth, k, np.eye(4), 4, [4, 12], [wide, b], {8: 0}, 10,
+                                              surfaces, 0.01)
+    assert moved == (who == 1).sum() and (inst[who == 1] == 12).all() and (inst[who == 0] == 4).all()
+    with pytest.raises(ValueError, match="spheres or their seen surfaces"):
+        panoptic_fusion.split_by_detector(inst, only_a, depth, k, np.eye(4), 4, [4, 12], None, {8: 0}, 10)
 
 
 def test_split_fruits_rewrites_the_fused_frames_of_a_fruit_painted_over_two(tmp_path):
