@@ -206,10 +206,10 @@ class Config:
     go to it, the fruit's other pixels within track_margin_m of a cluster's seen surface (its segments'
     points) to the cluster whose surface lies nearest, and the rest to the cluster whose sphere they lie
     deepest in (track_margin_m and detector_fill then run again with those spheres) or, where a cluster has no
-    plausible sphere, to the nearest surface's cluster where the detector shows it in the frame. About the
-    largest shift of a fruit's seen-surface centre between two neighbouring frames (it moves as the fruit
-    enters the view or hides behind a leaf), well under the distance of two touching fruits' centres. Needs
-    detector output."""
+    plausible sphere, to the nearest surface's cluster where the detector shows it in the frame (else to the
+    cluster with the most pixels). About the largest shift of a fruit's seen-surface centre between two
+    neighbouring frames (it moves as the fruit enters the view or hides behind a leaf), well under the distance
+    of two touching fruits' centres. Needs detector output."""
     compose_shared_frames: bool = True
     """in a frame several overlapping windows rendered, take each fruit's pixels from the window that saw the
     fruit in the most rendered frames (then pixels), not every pixel from the window whose centre is nearest.
