@@ -6,6 +6,7 @@ import re
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 import yaml
@@ -62,24 +63,90 @@ class Recording:
     """per colour image: the name used to find its detector / annotation files (file stem or stamp)."""
     counts: dict[str, int] = field(default_factory=dict)
     """skips and repairs found while reading metadata."""
+    notes: list[str] = field(default_factory=list)
+    """what those skips were (files named), for the stage summary."""
 
 
-def stamp_from_name(name: str) -> int:
-    """File stem -> ns: integer names are ns (or us/ms/s by digit count), decimal names are seconds."""
-    if re.fullmatch(r"\d+\.\d+", name):
-        sec, frac = name.split(".")
-        return int(sec) * 1_000_000_000 + int((frac + "000000000")[:9])
-    if re.fullmatch(r"\d+", name):
-        v = int(name)
-        digits = len(name)
-        if digits >= 18:
-            return v
-        if digits >= 15:
-            return v * 1_000
-        if digits >= 12:
-            return v * 1_000_000
-        return v * 1_000_000_000
-    raise IngestError(f"cannot read a timestamp from the file name {name!r} (expected integer ns or decimal s)")
+StampUnit = Literal["auto", "ns", "us", "ms", "s"]
+NS_PER_UNIT = {"ns": 1, "us": 1_000, "ms": 1_000_000, "s": 1_000_000_000}
+# 'auto' reads an integer of exactly these digit counts in this unit, where the reading falls in
+# [2000-01-01, 2100-01-01) UTC. Units are 1000 apart and that century spans a factor of 4.3, so no other
+# unit puts the same integer in it. 18 and 19 digits are ns whatever the date: as us they would be
+# thousands of years from 1970 or from any boot.
+AUTO_DIGITS = {19: "ns", 18: "ns", 16: "us", 13: "ms", 10: "s"}
+YEAR_2000_NS, YEAR_2100_NS = 946_684_800 * 10**9, 4_102_444_800 * 10**9
+INT64_MAX = 2**63 - 1
+# A clock counting nanoseconds from boot also writes 16 (11 days to 4 months up), 13 (17 min to 2.8 h) or
+# 10 digits (1 s to 10 s), so a folder that 'auto' read as us, ms or s must hold frames or samples closer
+# together than this, else its names were a boot clock's ns (read as ms they lie 18 hours apart at 15 fps).
+AUTO_MAX_PERIOD_NS = 5 * 10**9
+
+
+def read_stamp(name: str, unit: StampUnit = "auto") -> tuple[int, str]:
+    """File stem (or a timestamp column's text) -> (stamp_ns, how it was read: the unit, or 'decimal s').
+
+    unit 'ns', 'us', 'ms' or 's': the name's number in that unit (a decimal point allowed).
+    unit 'auto' reads only names whose digits leave no doubt:
+    - a decimal number is seconds (ROS `sec.nsec`, 100.033333333), before the year 2100;
+    - an integer of 18 or 19 digits is ns (before 2100);
+    - an integer of exactly 16, 13 or 10 digits is us, ms or s where that reading lies between 2000 and 2100
+      (1600000000123 -> ms, 2020-09-13); `check_auto_period` then checks the folder's spacing;
+    anything else (a boot clock's ns of 12 digits, a frame counter) is an IngestError saying to set
+    ingest.stamp_unit. Example: read_stamp("1600000000.5") == (1_600_000_000_500_000_000, "decimal s")."""
+    text = name.strip()
+    if not re.fullmatch(r"\d+(\.\d+)?", text):
+        raise IngestError(f"cannot read a timestamp from the name {name!r} (expected an integer, or a decimal "
+                          f"number of seconds)")
+    if unit != "auto":
+        if unit not in NS_PER_UNIT:
+            raise IngestError(f"stamp unit {unit!r} is not one of auto, {', '.join(NS_PER_UNIT)}")
+        ns = _in_ns(text, unit)
+        if ns > INT64_MAX:
+            raise IngestError(f"timestamp {name!r} read in {unit} (ingest.stamp_unit) lies after the year 2262; "
+                              f"is the unit right?")
+        return ns, unit
+    if "." in text:
+        ns = _in_ns(text, "s")
+        if ns >= YEAR_2100_NS:
+            raise IngestError(f"cannot tell the unit of the timestamp {name!r}: as seconds it lies after 2100; "
+                              f"set ingest.stamp_unit to ns, us, ms or s")
+        return ns, "decimal s"
+    digits = len(text.lstrip("0")) or 1
+    guess = AUTO_DIGITS.get(digits)
+    if guess is not None:
+        ns = _in_ns(text, guess)
+        if (guess == "ns" and ns < YEAR_2100_NS) or YEAR_2000_NS <= ns < YEAR_2100_NS:
+            return ns, guess
+    raise IngestError(f"cannot tell the unit of the integer timestamp {name!r} ({digits} digits): ingest.stamp_unit="
+                      f"auto reads only 18-19 digits as ns, and 16, 13 or 10 digits as us, ms or s between 2000 and "
+                      f"2100 (a clock counting from boot gives other names); set ingest.stamp_unit to ns, us, ms or s")
+
+
+def _in_ns(text: str, unit: str) -> int:
+    """'123.25' in `unit` -> ns, exactly (fraction digits finer than 1 ns dropped)."""
+    whole, _, frac = text.partition(".")
+    scale = NS_PER_UNIT[unit]
+    return int(whole) * scale + int((frac + "0" * 9)[:9]) * scale // 10**9
+
+
+def stamp_from_name(name: str, unit: StampUnit = "auto") -> int:
+    """File stem -> ns, by the rule of `read_stamp`."""
+    return read_stamp(name, unit)[0]
+
+
+def check_auto_period(stamps_ns: np.ndarray, how: list[str], unit: StampUnit, where: str) -> None:
+    """Under unit 'auto', names read as us, ms or s by their digit count (`how`, from read_stamp) must lie
+    less than AUTO_MAX_PERIOD_NS apart (median gap): a boot clock's ns of the same digit count, read so, lie
+    a thousand or more times farther apart. `where` names the folder or file for the error."""
+    read_as = sorted(set(how) & {"us", "ms", "s"})
+    if unit != "auto" or not read_as:
+        return
+    gaps = np.diff(np.unique(np.asarray(stamps_ns, np.int64)))
+    if len(gaps) and np.median(gaps) > AUTO_MAX_PERIOD_NS:
+        raise IngestError(f"{where}: the names read as {'/'.join(read_as)} by their digit count (ingest.stamp_unit="
+                          f"auto) lie a median {np.median(gaps) / 1e9:.4g} s apart, too far for frames or odometry "
+                          f"samples; they are likely ns of a clock counting from boot: set ingest.stamp_unit to the "
+                          f"unit of the names (ns, us, ms or s)")
 
 
 def sort_unique(stamps: np.ndarray, what: str, counts: dict[str, int]) -> np.ndarray:
@@ -154,8 +221,9 @@ def depth_to_mm(depth_m: np.ndarray) -> np.ndarray:
     return np.where(mm < 65535, mm, 0).astype(np.uint16)
 
 
-def read_params(path: Path) -> tuple[Camera, np.ndarray]:
-    """params.yaml -> (camera, T_robot_camera)."""
+def read_params(path: Path) -> tuple[Camera, np.ndarray, float]:
+    """params.yaml -> (camera, T_robot_camera, depth_scale_m: metres per unit of a 16-bit depth image,
+    0.001 (millimetres) where the file does not say)."""
     if not path.is_file():
         raise IngestError(f"{path} not found: expected params.yaml with K (3x3), T_robot_camera (4x4), width, height")
     try:
@@ -186,7 +254,21 @@ def read_params(path: Path) -> tuple[Camera, np.ndarray]:
         raise IngestError(f"{path}: T_robot_camera is not a rigid transform: its rotation part is not orthonormal "
                           f"with determinant +1 (R R^T deviates from I by {np.abs(r @ r.T - np.eye(3)).max():.3g}, "
                           f"det R = {np.linalg.det(r):.4g}); scale or shear does not belong in the extrinsics")
-    return Camera(k, w, h, str(path)), t
+    return Camera(k, w, h, str(path)), t, depth_scale(p, path)
+
+
+def depth_scale(params: dict, path: Path) -> float:
+    """depth_scale_m of a parsed params.yaml: metres per unit of a 16-bit depth image (0.001 = millimetres,
+    the default where the key is absent; 0.0001 for a sensor writing tenths of a millimetre)."""
+    value = params.get("depth_scale_m", 0.001) if isinstance(params, dict) else 0.001
+    try:
+        scale = float(value)
+    except (TypeError, ValueError):
+        scale = float("nan")
+    if not (np.isfinite(scale) and 0 < scale <= 1):
+        raise IngestError(f"{path}: depth_scale_m must be metres per unit of the 16-bit depth images, in (0, 1] "
+                          f"(0.001 for millimetres), got {value!r}")
+    return scale
 
 
 class FrameSource:

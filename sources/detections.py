@@ -28,7 +28,7 @@ import yaml
 
 from pipeline.classes import DEFAULT_CLASSES, THING_IDS, VOID
 from sources import coco
-from sources.common import IngestError, pair_nearest, stamp_from_name
+from sources.common import IngestError, StampUnit, pair_nearest, stamp_from_name
 
 FORMATS = ("png_pair", "coco_panoptic", "coco_instances")
 IMAGES_JSON = "images.json"
@@ -242,12 +242,13 @@ def categories_of(obj: Any) -> dict[int, str]:
         return {}
 
 
-def image_stamps(images: list, where: str) -> dict[int, tuple[int, int | None, int | None]]:
+def image_stamps(images: list, where: str,
+                 stamp_unit: StampUnit = "auto") -> dict[int, tuple[int, int | None, int | None]]:
     """COCO images list -> {image id: (stamp_ns from the file name, height, width)}."""
     out = {}
     for n, img in enumerate(images):
         try:
-            out[int(img["id"])] = (stamp_from_name(Path(str(img["file_name"])).stem),
+            out[int(img["id"])] = (stamp_from_name(Path(str(img["file_name"])).stem, stamp_unit),
                                    int(img["height"]) if "height" in img else None,
                                    int(img["width"]) if "width" in img else None)
         except (KeyError, TypeError, ValueError) as err:
@@ -280,16 +281,16 @@ def read_panoptic_png(path: Path) -> np.ndarray:
 class CocoPanoptic:
     """Per frame stamp: the annotation (file_name, segments_info)."""
 
-    def __init__(self, path: Path, obj: dict):
+    def __init__(self, path: Path, obj: dict, stamp_unit: StampUnit = "auto"):
         self.path, self.folder = path, path.with_suffix("")
         self.categories = categories_of(obj)
         self.by_stamp: dict[int, dict] = {}
-        images = image_stamps(obj["images"], str(path)) if isinstance(obj.get("images"), list) else {}
+        images = image_stamps(obj["images"], str(path), stamp_unit) if isinstance(obj.get("images"), list) else {}
         for n, ann in enumerate(obj["annotations"]):
             if not isinstance(ann, dict) or not isinstance(ann.get("segments_info"), list) or "file_name" not in ann:
                 raise IngestError(f"{path}: annotations[{n}] needs file_name and a segments_info list")
             try:
-                stamp = stamp_from_name(Path(str(ann["file_name"])).stem)
+                stamp = stamp_from_name(Path(str(ann["file_name"])).stem, stamp_unit)
             except IngestError:
                 if ann.get("image_id") in images:
                     stamp = images[ann["image_id"]][0]
@@ -358,22 +359,22 @@ class CocoPanoptic:
 
 class CocoInstances:
     """Per frame stamp: its results; stamps from an images list (in the JSON or images.json beside it) or,
-    without one, from the image_id itself (read like a file name: integer ns, or us/ms/s by digits)."""
+    without one, from the image_id itself (read like a file name, by ingest.stamp_unit)."""
 
-    def __init__(self, path: Path, obj: Any, semantic_dir: Path):
+    def __init__(self, path: Path, obj: Any, semantic_dir: Path, stamp_unit: StampUnit = "auto"):
         self.path, self.semantic_dir = path, semantic_dir
         results = obj if isinstance(obj, list) else obj["annotations"]
         self.categories = categories_of(obj)
         images: dict[int, tuple[int, int | None, int | None]] = {}
         self.images_from = ""
         if isinstance(obj, dict) and isinstance(obj.get("images"), list):
-            images, self.images_from = image_stamps(obj["images"], str(path)), str(path)
+            images, self.images_from = image_stamps(obj["images"], str(path), stamp_unit), str(path)
         elif (path.parent / IMAGES_JSON).is_file():
             side = read_json(path.parent / IMAGES_JSON)
             if not isinstance(side, dict) or not isinstance(side.get("images"), list):
                 raise IngestError(f"{path.parent / IMAGES_JSON}: expected a COCO JSON with an images list")
-            images, self.images_from = image_stamps(side["images"], str(path.parent / IMAGES_JSON)), \
-                str(path.parent / IMAGES_JSON)
+            images = image_stamps(side["images"], str(path.parent / IMAGES_JSON), stamp_unit)
+            self.images_from = str(path.parent / IMAGES_JSON)
             self.categories = self.categories or categories_of(side)
         self.by_stamp: dict[int, list[tuple[int, dict]]] = {}
         self.sizes: dict[int, tuple[int | None, int | None]] = {}
@@ -391,7 +392,7 @@ class CocoInstances:
                 stamp = images[r["image_id"]][0]
             else:
                 try:
-                    stamp = stamp_from_name(str(r["image_id"]))
+                    stamp = stamp_from_name(str(r["image_id"]), stamp_unit)
                 except IngestError:
                     raise IngestError(f"{path}: result [{n}] has image_id {r['image_id']!r}, and there is no images "
                                       f"list (in the JSON or {IMAGES_JSON} beside it) to find its frame; without "

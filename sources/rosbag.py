@@ -13,9 +13,10 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import yaml
 
-from sources.common import (Camera, FrameSource, IngestError, Recording, Trajectory, pose_from_txyzq,
-                            read_params, sort_unique)
+from sources.common import (Camera, FrameSource, IngestError, Recording, Trajectory, depth_scale,
+                            pose_from_txyzq, read_params, sort_unique)
 
 TF_TYPES = ("tf2_msgs/msg/TFMessage", "tf/msg/tfMessage")
 
@@ -122,8 +123,17 @@ def chain_transform(tfs: dict[tuple[str, str], np.ndarray], parent: str, child: 
 
 class RosBag(FrameSource):
     def __init__(self, path: Path, topics: Topics, params_fallback: Path | None = None):
+        """`params_fallback`: a params.yaml beside the bag, read for what the bag lacks (intrinsics, the
+        extrinsic) and for its depth_scale_m (metres per unit of 16UC1 depth; without it millimetres, REP 118)."""
         self.path = path
         self.topics = topics
+        self.depth_scale_m = 0.001
+        if params_fallback is not None and params_fallback.is_file():
+            try:
+                params = yaml.safe_load(params_fallback.read_text())
+            except yaml.YAMLError as err:
+                raise IngestError(f"{params_fallback} is not valid YAML: {err}") from err
+            self.depth_scale_m = depth_scale(params, params_fallback)
         counts: dict[str, int] = {}
         with open_reader(path) as reader:
             conns = {c.topic: c for c in reader.connections}
@@ -228,7 +238,7 @@ class RosBag(FrameSource):
                         users = []
                     if users:
                         if arr.dtype == np.uint16:
-                            d = arr.astype(np.float32) * 0.001
+                            d = arr.astype(np.float32) * np.float32(self.depth_scale_m)
                         else:
                             d = np.where(np.isfinite(arr) & (arr > 0), arr, 0).astype(np.float32)
                         for c in users:

@@ -14,8 +14,8 @@ import schemas
 from pipeline.classes import DEFAULT_CLASSES, THING_IDS, VOID
 from pipeline.images import ImageError, read_label, write_png
 from pipeline.stage import StageContext
-from sources.common import (FrameSource, IngestError, depth_to_mm, interpolate_poses, pair_nearest, stamp_from_name,
-                            txyzq_from_pose)
+from sources.common import (FrameSource, IngestError, StampUnit, depth_to_mm, interpolate_poses, pair_nearest,
+                            stamp_from_name, txyzq_from_pose)
 from sources.detections import (ClassMapper, CocoInstances, CocoPanoptic, UnreadableLabels, detect_format,
                                 load_class_map, match_stamps)
 from sources.png_folder import PngFolder
@@ -53,6 +53,10 @@ class Config:
     """frames beyond the odometry's ends, or in gaps longer than twice this, are skipped and counted."""
     odometry_csv: str = "odometry.csv"
     """odometry file of the PNG folder (BUP20 also has rgbd_odom.csv)."""
+    stamp_unit: Literal["auto", "ns", "us", "ms", "s"] = "auto"
+    """unit of the timestamps in file names (rgb/, depth/, detector and label files) and in odometry.csv; 'auto'
+    reads only names that leave no doubt (decimal seconds; 18-19 digits as ns; 16, 13, 10 digits as us, ms, s
+    between 2000 and 2100) and stops on others. Set it for a clock counting from boot (12-digit ns)."""
     detections_dir: str = "pred_seg"
     """detector output folder in the raw folder (see docs/detector_formats.md)."""
     detections_format: Literal["auto", "png_pair", "coco_panoptic", "coco_instances"] = "auto"
@@ -108,7 +112,7 @@ def open_source(raw: Path, cfg: Config) -> FrameSource:
     if kind == "auto":
         kind = "png" if (raw / "rgb").is_dir() else "bag"
     if kind == "png":
-        return PngFolder(raw, cfg.odometry_csv)
+        return PngFolder(raw, cfg.odometry_csv, cfg.stamp_unit)
     topics = Topics(cfg.color_topic, cfg.depth_topic, cfg.camera_info_topic, cfg.odom_topic, cfg.tf_topic,
                     cfg.odom_frame, cfg.base_frame, cfg.camera_frame)
     bag = find_bag(raw, cfg)
@@ -143,12 +147,13 @@ def depth_used_twice(cs: np.ndarray, ds: np.ndarray, di: np.ndarray) -> np.ndarr
     return out
 
 
-def index_by_stamp(folder: Path) -> tuple[np.ndarray, list[Path]]:
+def index_by_stamp(folder: Path, stamp_unit: StampUnit = "auto") -> tuple[np.ndarray, list[Path]]:
+    """Sorted stamps and files of the PNGs in `folder` named by stamp (others are not this folder's)."""
     files = sorted(folder.glob("*.png")) if folder.is_dir() else []
     stamps, paths = [], []
     for f in files:
         try:
-            stamps.append(stamp_from_name(f.stem))
+            stamps.append(stamp_from_name(f.stem, stamp_unit))
             paths.append(f)
         except IngestError:
             continue
@@ -198,11 +203,11 @@ def labelled_stamps(raw: Path, cfg: Config, ctx: StageContext) -> np.ndarray:
             ctx.note(f"{path} uses categories {foreign} that the class table lacks; it is read only for which "
                      f"frames are labelled (ground truth comes from gt/ or seg/)")
         try:
-            return np.array(sorted(stamp_from_name(n) for n in names), np.int64)
+            return np.array(sorted(stamp_from_name(n, cfg.stamp_unit) for n in names), np.int64)
         except IngestError as err:
             raise IngestError(f"{path}: images[].file_name must be named by the frame's stamp "
                               f"(rgb/<stamp_ns>.png): {err}") from None
-    return index_by_stamp(raw / "seg")[0]
+    return index_by_stamp(raw / "seg", cfg.stamp_unit)[0]
 
 
 def read_scores(path: Path) -> pd.DataFrame:
@@ -237,6 +242,8 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
     rec = src.recording
     for k, v in rec.counts.items():
         ctx.count(k, v)
+    for note in rec.notes:
+        ctx.note(note)
     cs = rec.color_stamps
     dup = duplicate_frames(cs, int(cfg.min_frame_gap_ms * 1e6))
     if dup.any():
@@ -293,8 +300,8 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
                           f"error: {first_error}")
     stamps = cs[order]
     tol = int(cfg.match_tolerance_ms * 1e6)
-    gts_st, gts_files = index_by_stamp(raw / "gt" / "semantic")
-    gti_st, gti_files = index_by_stamp(raw / "gt" / "instance")
+    gts_st, gts_files = index_by_stamp(raw / "gt" / "semantic", cfg.stamp_unit)
+    gti_st, gti_files = index_by_stamp(raw / "gt" / "instance", cfg.stamp_unit)
     m_gts, m_gti = match(stamps, gts_st, tol), match(stamps, gti_st, tol)
     lab = labelled_stamps(raw, cfg, ctx)
     is_lab = match(stamps, lab, tol) >= 0
@@ -377,8 +384,8 @@ def read_png_pair(det_dir: Path, stamps: np.ndarray, shape: tuple[int, int], cfg
     with one, the mapped label images are written under images/det/ (segments mapped to stuff removed)."""
     tol = int(cfg.match_tolerance_ms * 1e6)
     root = ctx.data_root
-    sem_st, sem_files = index_by_stamp(det_dir / "semantic")
-    ins_st, ins_files = index_by_stamp(det_dir / "instance")
+    sem_st, sem_files = index_by_stamp(det_dir / "semantic", cfg.stamp_unit)
+    ins_st, ins_files = index_by_stamp(det_dir / "instance", cfg.stamp_unit)
     m_sem, m_ins = match(stamps, sem_st, tol), match(stamps, ins_st, tol)
     sem_paths: list[Path | None] = []
     ins_paths: list[Path | None] = []
@@ -500,8 +507,8 @@ def read_coco(raw: Path, det_dir: Path, fmt: str, json_path: Path, obj, stamps: 
     """COCO panoptic or instance results -> label PNGs written under images/det/ and the segments."""
     tol = int(cfg.match_tolerance_ms * 1e6)
     mapping, origin = load_class_map(cfg.class_map, raw)
-    reader = CocoPanoptic(json_path, obj) if fmt == "coco_panoptic" else \
-        CocoInstances(json_path, obj, det_dir / "semantic")
+    reader = CocoPanoptic(json_path, obj, cfg.stamp_unit) if fmt == "coco_panoptic" else \
+        CocoInstances(json_path, obj, det_dir / "semantic", cfg.stamp_unit)
     cmap = ClassMapper(mapping, origin, reader.categories, cfg.unmapped, str(json_path))
     for c in reader.categories_used():
         cmap(c)
@@ -511,7 +518,8 @@ def read_coco(raw: Path, det_dir: Path, fmt: str, json_path: Path, obj, stamps: 
     unmatched = len(det_stamps) - len(set(m[m >= 0].tolist()))
     if unmatched:
         ctx.count("detector_images_without_frame", unmatched)
-    sem_st, sem_files = index_by_stamp(det_dir / "semantic") if fmt == "coco_instances" else (np.zeros(0, np.int64), [])
+    sem_st, sem_files = index_by_stamp(det_dir / "semantic", cfg.stamp_unit) if fmt == "coco_instances" else \
+        (np.zeros(0, np.int64), [])
     m_sem = match(stamps, sem_st, tol)
     out_dir = ctx.output_dir("images")
     sem_rel: list[str | None] = [None] * len(stamps)

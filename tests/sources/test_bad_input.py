@@ -264,7 +264,7 @@ def test_bad_input_odometry_timestamp_that_is_not_a_time_is_an_error(raw, tmp_pa
 
 def test_bad_input_colour_image_not_named_by_a_stamp_is_an_error(raw, tmp_path):
     shutil.copy(next((raw / "rgb").iterdir()), raw / "rgb" / "frame_0001.png")
-    with pytest.raises(IngestError, match=r"rgb/frame_0001.png: cannot read a timestamp .* every PNG in .*rgb must "
+    with pytest.raises(IngestError, match=r"rgb/frame_0001.png: cannot read a timestamp .* every image in .*rgb must "
                                           r"be named by its timestamp"):
         run_ingest(raw, tmp_path)
 
@@ -284,7 +284,7 @@ def test_bad_input_8_bit_depth_png_is_a_counted_skip(raw, tmp_path):
     cv2.imwrite(str(raw / "depth" / f"{st}.png"), np.full((32, 48), 70, np.uint8))
     out, ctx = run_ingest(raw, tmp_path)
     assert ctx.summary["skipped_bad_image"] == 1 and len(out["frames"]) == 7
-    assert f"depth/{st}.png: expected 16-bit single-channel mm, got uint8" in ctx.summary["notes"][0]
+    assert f"depth/{st}.png: expected 16-bit single-channel, got uint8" in ctx.summary["notes"][0]
 
 
 # --- params.yaml and annotations -------------------------------------------------------------------
