@@ -16,6 +16,7 @@ from pipeline.images import read_label
 from pipeline.stage import StageContext
 from rowmap.renders import Renders
 from rowmap.scoring import PanopticScore, image_pixels_for
+from sources.common import pair_nearest
 
 INPUTS = ("raw", "frames", "windows", "window_poses", "window_metrics", "nerf", "renders", "gt_segments",
           "panoptic_frames", "panoptic", "fruits", "counts")
@@ -145,6 +146,21 @@ def window_scores(inputs: dict, gt: GroundTruth, gt_poses: pd.DataFrame | None, 
     return rows
 
 
+def gt_poses_by_frame(gt_poses: pd.DataFrame, frames: pd.DataFrame) -> pd.DataFrame:
+    """gt/poses.parquet keyed by the ingested frames' frame_id: each frame takes the ground-truth pose whose
+    stamp_ns is nearest its own, within half the median frame period (0 for a single frame). frame_id in the
+    file numbers the recorder's frames, which ingest renumbers after any skipped frame, so the stamp is the
+    only key both share. Frames without such a pose are left out; the file's frame_id is dropped."""
+    stamps = np.sort(frames.stamp_ns.to_numpy(np.int64))
+    tol_ns = int(np.median(np.diff(stamps)) // 2) if len(stamps) > 1 else 0
+    gt = gt_poses.drop(columns=["frame_id"], errors="ignore").sort_values("stamp_ns", kind="stable")
+    j = pair_nearest(frames.stamp_ns.to_numpy(np.int64), gt.stamp_ns.to_numpy(np.int64), tol_ns)
+    ok = j >= 0
+    out = gt.iloc[j[ok]].drop(columns=["stamp_ns"]).reset_index(drop=True)
+    out.insert(0, "frame_id", frames.frame_id.to_numpy()[ok])
+    return out
+
+
 def match_fruits(pred: np.ndarray, gt: np.ndarray, max_m: float) -> list[tuple[int, int, float]]:
     """One-to-one matches (pred index, gt index, distance) of centres [P, 3] and [G, 3] minimising the total
     distance (Hungarian), pairs farther than max_m excluded."""
@@ -269,11 +285,18 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
     frames = inputs["frames"].set_index("frame_id", drop=False)
     gt_poses = pd.read_parquet(gt_dir / "poses.parquet") if (gt_dir / "poses.parquet").is_file() else None
     gt_fruits = pd.read_parquet(gt_dir / "fruits.parquet") if (gt_dir / "fruits.parquet").is_file() else None
-    for name, t, need in (("poses", gt_poses, {"frame_id", *POSE_COLS}),
+    for name, t, need in (("poses", gt_poses, {"stamp_ns", *POSE_COLS}),
                           ("fruits", gt_fruits, {"fruit_id", "class_id", "x_m", "y_m", "z_m", "diameter_m", "near_row"})):
         if t is not None and not need <= set(t.columns):
             raise ValueError(f"evaluate: {gt_dir / (name + '.parquet')} lacks columns {sorted(need - set(t.columns))}; "
-                             f"columns: {list(t.columns)} (data/README.md, 'Ground truth of a synthetic row')")
+                             f"columns: {list(t.columns)} (data/README.md, 'Ground truth: gt/')")
+    if gt_poses is not None:
+        gt_poses = gt_poses_by_frame(gt_poses, frames)
+        missing = len(frames) - len(gt_poses)
+        if missing:
+            ctx.count("frames_without_gt_pose", missing)
+            ctx.note(f"{missing} of {len(frames)} frames have no pose in {gt_dir / 'poses.parquet'} within half a frame "
+                     f"period of their stamp; pose errors are scored on the others")
     has_panoptic_gt = frames.gt_semantic_path.notna().any()
     if gt_poses is None and gt_fruits is None and not has_panoptic_gt:
         ctx.note(f"no ground truth ({gt_dir} absent and no labelled frames): nothing to evaluate, table empty")
