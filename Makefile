@@ -15,7 +15,6 @@ STAGES := $(shell python3 -c 'from pipeline.dag import STAGE_ORDER; print(*STAGE
 
 all: $(STAMP)
 	$(PAG) all --seq $(SEQ) $(ARGS)
-	@echo "report: $(CURDIR)/data/processed/$(SEQ)/report/report.html"
 
 test: $(STAMP)
 	$(PY) -m pytest -q $(ARGS)

@@ -137,14 +137,24 @@ def dispatch(args: argparse.Namespace) -> int:
         lo = names.index(args.from_stage) if args.from_stage in names else 0
         hi = names.index(args.to_stage) + 1 if args.to_stage in names else len(names)
         runner.run(names[lo:hi], force=args.force)
-        out = runner.data_root / "processed" / runner.seq
-        report = out / "report" / "report.html"
-        print(f"[pag] outputs: {runner.data_root / 'interim' / runner.seq} and {out}")
-        if report.is_file():
-            print(f"[pag] report: {report.resolve()}")
+        print(f"[pag] outputs: {(runner.data_root / 'interim' / runner.seq).resolve()} and "
+              f"{(runner.data_root / 'processed' / runner.seq).resolve()}")
+        _print_report_path(runner)
         return 0
     runner.run([args.command], force=args.force)
+    if args.command == "report":
+        _print_report_path(runner)
     return 0
+
+
+def _print_report_path(runner) -> None:
+    """Where the row's report is, under the run's data root (`--data-root`), the one place that says it
+    (`make all` prints nothing of its own)."""
+    from pipeline.catalog import dataset
+
+    report = dataset("report").path(runner.data_root, runner.seq) / "report.html"
+    if report.is_file():
+        print(f"[pag] report: {report.resolve()}")
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -149,7 +149,9 @@ class Runner:
         makes_raw = any(s.name == "synth" for s in chosen)
         if needs_raw and not makes_raw and not self.raw_dir.is_dir():
             root = self.data_root / "raw"
-            have = sorted(p.name for p in root.iterdir() if p.is_dir()) if root.is_dir() else []
+            # hidden folders are no sequences (valid_seq refuses them): a synth run's .<SEQ>.staging-<pid>
+            have = sorted(p.name for p in root.iterdir() if p.is_dir() and not p.name.startswith(".")) \
+                if root.is_dir() else []
             hint = ("run `pag synth` (or `pag all`) first to generate it" if self.synthetic else
                     "put a recorded row there: a BUP20-style folder (rgb/, depth/, odometry.csv, params.yaml, "
                     "pred_seg/, annotations.json) or a ROS 1/ROS 2 bag with pred_seg/ beside it (see data/README.md); "
