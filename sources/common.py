@@ -95,7 +95,7 @@ def read_stamp(name: str, unit: StampUnit = "auto") -> tuple[int, str]:
     ingest.stamp_unit. Example: read_stamp("1600000000.5") == (1_600_000_000_500_000_000, "decimal s")."""
     text = name.strip()
     if not re.fullmatch(r"\d+(\.\d+)?", text):
-        raise IngestError(f"cannot read a timestamp from the name {name!r} (expected an integer, or a decimal "
+        raise IngestError(f"cannot read a timestamp from {name!r} (expected an integer, or a decimal "
                           f"number of seconds)")
     if unit != "auto":
         if unit not in NS_PER_UNIT:

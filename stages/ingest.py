@@ -54,9 +54,8 @@ class Config:
     odometry_csv: str = "odometry.csv"
     """odometry file of the PNG folder (BUP20 also has rgbd_odom.csv)."""
     stamp_unit: Literal["auto", "ns", "us", "ms", "s"] = "auto"
-    """unit of the timestamps in file names (rgb/, depth/, detector and label files) and in odometry.csv; 'auto'
-    reads only names that leave no doubt (decimal seconds; 18-19 digits as ns; 16, 13, 10 digits as us, ms, s
-    between 2000 and 2100) and stops on others. Set it for a clock counting from boot (12-digit ns)."""
+    """unit of the stamps in file names and odometry.csv: ns, us, ms, s, or 'auto' = only names whose digits leave
+    no doubt, else an error (data/README.md, Timestamps); set it for a clock counting from boot."""
     detections_dir: str = "pred_seg"
     """detector output folder in the raw folder (see docs/detector_formats.md)."""
     detections_format: Literal["auto", "png_pair", "coco_panoptic", "coco_instances"] = "auto"
