@@ -6,8 +6,6 @@ import json
 import os
 import pickle
 import shutil
-import time
-import traceback
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Literal
@@ -17,7 +15,7 @@ import pandas as pd
 
 import schemas
 from nerf.config import NerfConfig, NerfOverrides, PanopticConfig, preset, set_fields
-from nerf.depth_poses import DepthPoses, depth_initial_poses
+from nerf.depth_poses import DepthPoses
 from nerf.geometry import pose_txyzq, rotation_angle_deg
 from pipeline import io, parallel, progress
 from pipeline.stage import StageContext
@@ -64,23 +62,14 @@ class Config:
     to full size (colour bilinear; depth and labels nearest, so no depth or label is invented between two
     surfaces). Labelled frames (the window's centre included) are always rendered at full size, so the
     evaluated frames keep their detail. 1 = full size (no resizing); 0 = automatic: the largest scale whose
-    renders are at most RENDER_WIDTH (320) pixels wide (1 up to 320x180, 0.5 at 640x360, 0.25 at 1280x720):
-    a window renders every other frame of its span, so at 0.5 the renders of a 1280x720 window cost about as
-    much as its colour fit. Validation PSNR is measured at the scale each frame was rendered at (the recorded image
-    area-averaged to that size)."""
+    renders are at most RENDER_WIDTH (320, nerf/render_scale.py) pixels wide (1 up to 320x180, 0.5 at 640x360,
+    0.25 at 1280x720): a window renders every other frame of its span, so at 0.5 the renders of a 1280x720
+    window cost about as much as its colour fit. Validation PSNR is measured at the scale each frame was
+    rendered at (the recorded image area-averaged to that size)."""
 
     def __post_init__(self) -> None:
         if not 0 <= self.render_scale <= 1:
             raise ValueError(f"nerf_fit.render_scale must be in [0, 1] (0 = automatic), got {self.render_scale}")
-
-
-RENDER_WIDTH = 320
-"""Width (pixels) of the working renders with nerf_fit.render_scale = 0 (automatic)."""
-
-
-def working_scale(render_scale: float, width: int) -> float:
-    """The render scale for images `width` pixels wide: render_scale, or with 0 the automatic one."""
-    return render_scale if render_scale > 0 else min(1.0, RENDER_WIDTH / width)
 
 
 def model_config(cfg: Config) -> NerfConfig:
@@ -97,79 +86,25 @@ def window_payload(wid: int, w: pd.DataFrame, cfg: Config, mcfg: NerfConfig, dev
             "render_scale": cfg.render_scale}
 
 
-def scaled_model(model, scale: float):
-    """The same model seen through a camera with `scale` times the pixels per side: the image size rounded,
-    the intrinsics (fx, fy, cx, cy) scaled by the exact size ratio (pixel centres stay at half-integers, so
-    continuous image coordinates simply scale). Shares the field, grid and poses; nothing is copied."""
-    w, h = model.wh
-    ws, hs = max(1, round(w * scale)), max(1, round(h * scale))
-    k = model.intrinsics.clone()
-    k[:, 0::2] *= ws / w  # fx, cx
-    k[:, 1::2] *= hs / h  # fy, cy
-    return replace(model, intrinsics=k, wh=(ws, hs))
-
-
-def to_full_size(out: dict, wh: tuple[int, int]) -> dict:
-    """A render made at a working scale, resized to the image size wh = (W, H): rgb bilinear; depth, opacity
-    and labels nearest-neighbour. Tensors stay tensors, arrays stay arrays."""
-    import cv2
-    import torch
-
-    w, h = wh
-
-    def resize(a, linear: bool):
-        is_tensor = isinstance(a, torch.Tensor)
-        arr = a.detach().cpu().numpy() if is_tensor else np.asarray(a)
-        # cv2 resizes uint8, uint16 and float32; other types (int32 slot ids) go through float32, exact below 2^24
-        src = arr if arr.dtype in (np.uint8, np.uint16, np.float32) else arr.astype(np.float32)
-        r = cv2.resize(src, (w, h), interpolation=cv2.INTER_LINEAR if linear else cv2.INTER_NEAREST).astype(arr.dtype)
-        return torch.from_numpy(r).to(a.device) if is_tensor else r
-
-    res = dict(out)
-    for key in ("rgb", "depth", "opacity", "semantic", "instance"):
-        if key in out:
-            res[key] = resize(out[key], key == "rgb")
-    return res
-
-
-def render_at(render, model, scale: float, full_size: set[int]):
-    """render(model, i) -> a render of frame i at the working `scale` (full size for frames in `full_size`),
-    returned at full size; a resized one keeps its colour at the working scale as "rgb_working"."""
-    if scale >= 1:
-        return lambda i: render(model, i)
-    small = scaled_model(model, scale)
-
-    def at_scale(i: int) -> dict:
-        if i in full_size:
-            return render(model, i)
-        out = render(small, i)
-        return {**to_full_size(out, model.wh), "rgb_working": out["rgb"]}
-
-    return at_scale
-
-
 def fit_one(payload: dict) -> dict:
-    """Runs in a Dask worker: fit, save checkpoint and renders, return table rows."""
+    """Runs in a Dask worker: load the window, fit it (nerf/fit.py), write checkpoint and renders, return rows."""
     import torch
 
-    from nerf.trainer import fit_window, validate
+    from nerf.fit import fit_panoptic_window
 
     wid, out_dir, data_root = payload["window_id"], Path(payload["out_dir"]), Path(payload["data_root"])
     frames = pd.DataFrame(payload["frames"])
     key = str(wid)
     parallel.report(key, 0, len(frames), phase="load frames")
     data = load_window(frames, data_root)
-    odometry = data.poses_c2w
-    parallel.report(key, 0, 1, phase="depth poses")
-    data.poses_c2w, depth_info = depth_initial_poses(payload["depth_poses"], data.depths, data.intrinsics, odometry)
-    parallel.report(key, 1, 1, phase="depth poses")
-    try:
-        res = fit_window(data, payload["cfg"], device=payload["device"], render_val=False,
-                         progress=lambda s, n, info: parallel.report(key, s, n, **info))
-    except Exception as err:
-        raise RuntimeError(f"window {wid}: {err}") from err
-    if not payload["panoptic"].enabled:  # else colour and panoptic are rendered in one pass below
-        validate(res, data, reporting_render(key, res.model.render_image, data.is_train, "validation render"))
+    detections = pd.DataFrame(payload["detections"]) if payload["detections"] else None
+    # labelled frames (the centre included) are rendered at full size: the evaluated frames keep their detail
+    full = set(np.flatnonzero(frames[[c for c in ("is_center", "labelled") if c in frames]].any(axis=1)).tolist())
+    fit = fit_panoptic_window(data, lambda: load_labels(frames, detections, data_root), payload["cfg"],
+                              payload["panoptic"], depth_poses=payload["depth_poses"],
+                              render_scale=payload["render_scale"], full_size=full, device=payload["device"],
+                              progress=lambda s, n, info: parallel.report(key, s, n, **info), name=f"window {wid}")
+    res, pan = fit.colour, fit.panoptic
     name = f"window_{wid:03d}"
     resume = Path(payload["resume_dir"]) if payload.get("resume_dir") else None
     # with a resume folder the window is built under a temp name there and renamed into place when complete
@@ -180,37 +115,15 @@ def fit_one(payload: dict) -> dict:
         shutil.rmtree(wdir.parent, ignore_errors=True)
     (wdir / "renders").mkdir(parents=True, exist_ok=True)
     state = res.model.state()
-    pan = None
-    pcfg = payload["panoptic"]
-    if pcfg.enabled:
-        from nerf.panoptic.complete import complete_instances
-        from nerf.panoptic.render import render_panoptic
-        from nerf.panoptic.train import fit_panoptic
-
-        labels = load_labels(frames, pd.DataFrame(payload["detections"]) if payload["detections"] else None, data_root)
-        try:
-            pan = fit_panoptic(res.model, labels, data.is_train, data.depths, pcfg, seed=payload["cfg"].seed,
-                               progress=lambda s, n, info: parallel.report(key, s, n, phase="panoptic step", **info))
-        except Exception as err:
-            raise RuntimeError(f"window {wid} (panoptic phase): {err}") from err
-        del labels  # the window's label images are not needed past the fit (hundreds of MB at 1280x720)
+    if pan is not None:
         state["panoptic"] = pan.state()
-        full = set(np.flatnonzero(frames[[c for c in ("is_center", "labelled") if c in frames]].any(axis=1)).tolist())
-        validate(res, data, reporting_render(key, render_at(lambda m, i: render_panoptic(m, pan, i), res.model,
-                                                            working_scale(payload["render_scale"],
-                                                                          res.model.wh[0]), full),
-                                             data.is_train, "panoptic validation render"))
-        val = [int(i) for i in np.flatnonzero(~data.is_train)]
-        parallel.report(key, 0, 1, phase="instance completion")
-        complete_instances([res.renders[i] for i in val], data.intrinsics[val], res.poses_c2w[val], pan.cfg)
-        parallel.report(key, 1, 1, phase="instance completion")
     torch.save(state, wdir / "checkpoint.pt")
     kinds = render_files.KINDS if pan is not None else ("rgb", "depth")
     render_rows = []
     for i in np.flatnonzero(~data.is_train):
         out = res.renders[int(i)]
         render_rows += render_files.write_frame(wdir.parent, wid, int(data.frame_ids[i]), {k: out[k] for k in kinds})
-    init = odometry
+    init = data.poses_c2w  # the odometry (or COLMAP) poses, before the depth correction
     final = res.poses_c2w
     dt = np.linalg.norm(final[:, :3, 3] - init[:, :3, 3], axis=1)
     drot = rotation_angle_deg(init[:, :3, :3], final[:, :3, :3])
@@ -230,7 +143,7 @@ def fit_one(payload: dict) -> dict:
                "panoptic_params": pan.params if pan else 0,
                "panoptic_instances": bool(pan is not None and pan.cfg.instances), "n_slots": pan.n_slots if pan else 0,
                "id_window_width": pan.slot_window.width if pan and pan.slot_window else 0,
-               **depth_info,
+               **fit.depth_info,
                "checkpoint": f"window_{wid:03d}/checkpoint.pt"}
     result = {"poses": poses.to_dict("list"), "metrics": metrics, "renders": render_rows}
     if resume:
@@ -246,23 +159,6 @@ def fit_one(payload: dict) -> dict:
 
 FINISHED = "finished.pkl"
 """In a finished window's resume folder: the payload digest and the window's table rows."""
-
-
-def reporting_render(key: str, render, is_train: np.ndarray, what: str):
-    """`render(i)` that reports each finished validation frame as progress of task `key`."""
-    n = int((~is_train).sum())
-    done = [0]
-
-    def wrapped(i: int) -> dict:
-        if done[0] == 0:
-            parallel.report(key, 0, n, phase=what)
-        t0 = time.perf_counter()
-        out = render(i)
-        done[0] += 1
-        parallel.report(key, done[0], n, phase=what, frame_s=round(time.perf_counter() - t0, 2))
-        return out
-
-    return wrapped
 
 
 def payload_digest(payload: dict) -> str:

@@ -129,7 +129,7 @@ def test_a_checkpoint_with_the_old_pixel_footprint_step_loads_with_the_same_step
 
 
 def test_the_marching_step_is_the_same_for_every_image_size_and_render_scale(short_fit):
-    from stages.nerf_fit import scaled_model
+    from nerf.render_scale import scaled_model
 
     model = short_fit.model
     small = scaled_model(model, 0.5)

@@ -1,5 +1,5 @@
-"""nerf_fit's model settings: every NerfConfig setting can be set over the preset with --set, an unset one keeps
-the preset's value, and the settings are documented."""
+"""nerf_fit's settings: every NerfConfig setting can be set over the preset with --set, an unset one keeps
+the preset's value, and the settings are documented; render_scale is checked."""
 import dataclasses
 
 import pytest
@@ -46,3 +46,13 @@ def test_model_settings_carry_the_preset_settings_docs():
     assert docs["steps"] == cfgmod.field_docs(NerfConfig)["steps"] and docs["edge_ray_share"]
     lines = cfgmod.describe("nerf_fit", nerf_fit.Config)
     assert any(line.startswith("nerf_fit.model.steps = None    # ") for line in lines)
+
+
+@pytest.mark.parametrize("bad", [-0.5, 1.5])
+def test_render_scale_outside_0_1_is_refused(bad):
+    with pytest.raises(ValueError, match="render_scale must be in"):
+        nerf_fit.Config(render_scale=bad)
+
+
+def test_render_scale_is_automatic_by_default():
+    assert nerf_fit.Config().render_scale == 0

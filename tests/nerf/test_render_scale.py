@@ -1,5 +1,5 @@
-"""nerf_fit.render_scale: renders at a working scale with scaled intrinsics, stored at full size; labelled
-frames at full size."""
+"""Renders at a working scale (nerf/render_scale.py): scaled intrinsics, stored at full size; labelled frames at
+full size."""
 from dataclasses import dataclass
 
 import numpy as np
@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from nerf.render import pixel_rays
-from stages import nerf_fit
+from nerf.render_scale import render_at, scaled_model, to_full_size, working_scale
 
 
 @dataclass
@@ -19,7 +19,7 @@ class Cam:
 
 def test_scaled_model_sees_the_same_rays_through_the_same_image_points():
     cam = Cam(torch.tensor([[50.0, 52.0, 32.0, 20.0], [60.0, 60.0, 31.0, 19.5]]), (64, 40))
-    half = nerf_fit.scaled_model(cam, 0.5)
+    half = scaled_model(cam, 0.5)
     assert half.wh == (32, 20) and cam.wh == (64, 40)  # the original is untouched
     u, v = torch.tensor([0.5, 17.25, 63.5]), torch.tensor([0.5, 9.0, 39.5])  # full-size image coordinates
     c2w = torch.eye(4).expand(3, 4, 4)
@@ -34,7 +34,7 @@ def test_to_full_size_keeps_types_and_invents_no_labels_or_depths():
     out = {"rgb": torch.rand(20, 32, 3), "depth": torch.rand(20, 32), "opacity": torch.rand(20, 32),
            "semantic": rng.integers(0, 5, (20, 32)).astype(np.uint8),
            "instance": rng.integers(0, 300, (20, 32)).astype(np.int32), "samples_per_ray": 3.0}
-    full = nerf_fit.to_full_size(out, (64, 40))
+    full = to_full_size(out, (64, 40))
     assert full["rgb"].shape == (40, 64, 3) and isinstance(full["rgb"], torch.Tensor)
     assert full["instance"].dtype == np.int32 and full["instance"].shape == (40, 64)
     assert set(np.unique(full["instance"])) <= set(np.unique(out["instance"]))
@@ -53,29 +53,22 @@ def test_render_at_renders_labelled_frames_full_size_and_the_others_small():
         return {"rgb": torch.zeros(h, w, 3), "depth": torch.zeros(h, w), "semantic": np.zeros((h, w), np.uint8),
                 "instance": np.zeros((h, w), np.int32), "samples_per_ray": 1.0}
 
-    fn = nerf_fit.render_at(render, cam, 0.25, full_size={1})
+    fn = render_at(render, cam, 0.25, full_size={1})
     outs = [fn(i) for i in range(3)]
     assert all(o["rgb"].shape == (40, 64, 3) for o in outs)
     assert seen == [(0, (16, 10)), (1, (64, 40)), (2, (16, 10))]
     # a resized render keeps its colour at the working scale (validation PSNR is measured there)
     assert outs[0]["rgb_working"].shape == (10, 16, 3) and "rgb_working" not in outs[1]
     seen.clear()
-    nerf_fit.render_at(render, cam, 1.0, full_size=set())(0)
+    render_at(render, cam, 1.0, full_size=set())(0)
     assert seen == [(0, (64, 40))]
 
 
-@pytest.mark.parametrize("bad", [-0.5, 1.5])
-def test_render_scale_outside_0_1_is_refused(bad):
-    with pytest.raises(ValueError, match="render_scale must be in"):
-        nerf_fit.Config(render_scale=bad)
-
-
 def test_automatic_render_scale_keeps_renders_at_most_320_px_wide():
-    assert nerf_fit.Config().render_scale == 0
-    assert nerf_fit.working_scale(0, 160) == 1 and nerf_fit.working_scale(0, 320) == 1
-    assert nerf_fit.working_scale(0, 640) == 0.5 and nerf_fit.working_scale(0, 1280) == 0.25
-    assert nerf_fit.working_scale(0, 1920) == pytest.approx(1 / 6)
-    assert nerf_fit.working_scale(0.25, 320) == 0.25  # a set scale is kept
+    assert working_scale(0, 160) == 1 and working_scale(0, 320) == 1
+    assert working_scale(0, 640) == 0.5 and working_scale(0, 1280) == 0.25
+    assert working_scale(0, 1920) == pytest.approx(1 / 6)
+    assert working_scale(0.25, 320) == 0.25  # a set scale is kept
 
 
 def test_validation_psnr_of_a_small_render_is_measured_at_its_scale():
@@ -93,7 +86,7 @@ def test_validation_psnr_of_a_small_render_is_measured_at_its_scale():
     small = torch.from_numpy(cv2.resize(image, (32, 20), interpolation=cv2.INTER_AREA)).float() / 255
     res = SimpleNamespace(renders={}, val_psnr={}, samples_per_ray=0.0, render_s_per_image=0.0)
     cam = Cam(torch.tensor([[50.0, 50.0, 32.0, 20.0]] * 2), (64, 40))
-    render = nerf_fit.render_at(lambda m, i: {"rgb": small, "samples_per_ray": 1.0}, cam, 0.5, full_size=set())
+    render = render_at(lambda m, i: {"rgb": small, "samples_per_ray": 1.0}, cam, 0.5, full_size=set())
     validate(res, data, render)
     assert res.val_psnr[11] > 60 and "rgb_working" not in res.renders[1]
     assert res.renders[1]["rgb"].shape == (40, 64, 3)
