@@ -15,7 +15,6 @@ render_s_per_image; and `ablation.png` (PQ, mIoU and ID consistency per variant)
 from __future__ import annotations
 
 import argparse
-import copy
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -26,12 +25,7 @@ import torch
 
 from bench._common import read, stage_defaults, window_rows, write_parquet
 from nerf.config import PanopticConfig, preset
-from nerf.fields import param_count
-from nerf.metrics import psnr
-from nerf.panoptic.complete import complete_instances
-from nerf.panoptic.render import render_panoptic
-from nerf.panoptic.train import fit_panoptic
-from nerf.trainer import fit_window
+from nerf.fit import fit_colour, fit_panoptic_window
 from pipeline.classes import VOID
 from pipeline.images import read_label
 from rowmap.scoring import PanopticScore, thing_instances
@@ -105,26 +99,21 @@ def run(seq: str = "synth_row", window: int = 1, colour_steps: int = 0, panoptic
     det = score([(labels.semantic[i], labels.instance[i]) for i in val], gts)
     cfg = preset("cpu", **({"steps": colour_steps} if colour_steps else {}))
     t0 = time.perf_counter()
-    colour = fit_window(data, cfg, render_val=False)
+    colour = fit_colour(data, cfg)  # the variants share one colour fit; each trains its panoptic phase on a copy
     colour_s = time.perf_counter() - t0
     base = PanopticConfig(**({"steps": panoptic_steps} if panoptic_steps else {}))
     rows = []
     for name, change in VARIANTS.items():
-        model = copy.deepcopy(colour.model)
-        pres = fit_panoptic(model, labels, data.is_train, data.depths, replace(base, **change), seed=cfg.seed)
-        renders, psnrs, render_s = [], [], []
-        for i in val:
-            t1 = time.perf_counter()
-            renders.append(render_panoptic(model, pres, int(i)))
-            render_s.append(time.perf_counter() - t1)
-            psnrs.append(psnr(renders[-1]["rgb"], torch.from_numpy(data.images[i]).float() / 255.0))
-        complete_instances(renders, data.intrinsics[val], colour.poses_c2w[val], pres.cfg)  # as nerf_fit does
-        preds = [(r["semantic"], r["instance"]) for r in renders]
-        rows.append({"variant": name, "memory_prior": base.memory_prior, **change, "val_psnr": float(np.mean(psnrs)), **score(preds, gts),
+        fit = fit_panoptic_window(data, labels, cfg, replace(base, **change), colour=colour,
+                                  name=f"{seq} window {window}")
+        res, pres = fit.colour, fit.panoptic
+        preds = [(res.renders[int(i)]["semantic"], res.renders[int(i)]["instance"]) for i in val]
+        rows.append({"variant": name, "memory_prior": base.memory_prior, **change,
+                     "val_psnr": float(np.mean(list(res.val_psnr.values()))), **score(preds, gts),
                      "pq_detector": det["pq"], "miou_detector": det["miou"],
-                     "params": param_count(model.field) + pres.params, "panoptic_params": pres.params,
+                     "params": res.params + pres.params, "panoptic_params": pres.params,
                      "colour_fit_s": colour_s, "panoptic_fit_s": pres.fit_s, "fit_s": colour_s + pres.fit_s,
-                     "render_s_per_image": float(np.median(render_s)), "seq": seq, "window": window})
+                     "render_s_per_image": res.render_s_per_image, "seq": seq, "window": window})
         print(f"{name}: PQ {rows[-1]['pq']:.3f} mIoU {rows[-1]['miou']:.3f} ID {rows[-1]['id_consistency']:.3f}",
               flush=True)
     df = pd.DataFrame(rows)

@@ -33,7 +33,6 @@ from __future__ import annotations
 
 import argparse
 import copy
-import time
 from dataclasses import replace
 from pathlib import Path
 
@@ -45,15 +44,10 @@ from bench._common import kept_frames, read, run_stage, write_parquet
 from bench.ablation import ground_truth, score
 from nerf.baselines import PANOPTIC_LIFTING_LIKE, SEMANTIC_ONLY
 from nerf.config import NerfConfig, PanopticConfig, preset
-from nerf.depth_poses import depth_initial_poses
-from nerf.fields import param_count
+from nerf.depth_poses import DepthPoses
+from nerf.fit import fit_panoptic_window
 from nerf.geometry import pose_matrix
-from nerf.metrics import psnr
-from nerf.panoptic.complete import complete_instances
 from nerf.panoptic.labels import WindowLabels
-from nerf.panoptic.render import render_panoptic
-from nerf.panoptic.train import fit_panoptic
-from nerf.trainer import fit_window
 from nerf.window import WindowData
 from rowmap.window_data import initial_poses, load_labels, load_window
 
@@ -75,22 +69,17 @@ def scored_window(w: pd.DataFrame, dets: pd.DataFrame, gt_segments: pd.DataFrame
     return data, labels, wk, [ground_truth(wk.iloc[i], gt_segments, data_root) for i in np.flatnonzero(~data.is_train)]
 
 
-def fit_and_score(data: WindowData, labels: WindowLabels, gts: list, ncfg: NerfConfig, pcfg: PanopticConfig) -> dict:
-    """Colour phase, panoptic phase, one render per validation frame (colour + panoptic), scores."""
-    res = fit_window(data, ncfg, render_val=False)
-    pres = fit_panoptic(res.model, labels, data.is_train, data.depths, pcfg, seed=ncfg.seed)
-    val = np.flatnonzero(~data.is_train)
-    renders, psnrs, secs = [], [], []
-    for i in val:
-        t0 = time.perf_counter()
-        renders.append(render_panoptic(res.model, pres, int(i)))
-        secs.append(time.perf_counter() - t0)
-        psnrs.append(psnr(renders[-1]["rgb"], torch.from_numpy(data.images[i]).float() / 255.0))
-    complete_instances(renders, data.intrinsics[val], res.poses_c2w[val], pres.cfg)  # as nerf_fit does
-    preds = [(r["semantic"], r["instance"]) for r in renders]
-    return {"psnr": float(np.mean(psnrs)), **score(preds, gts), "fit_min_per_window": (res.fit_s + pres.fit_s) / 60,
-            "render_s_per_image": float(np.median(secs)), "params": param_count(res.model.field) + pres.params,
-            "colour_steps": ncfg.steps, "panoptic_steps": pcfg.steps, "rays_per_step": ncfg.rays_per_step,
+def fit_and_score(data: WindowData, labels: WindowLabels, gts: list, ncfg: NerfConfig, pcfg: PanopticConfig,
+                  depth_poses: DepthPoses = "off") -> dict:
+    """The window fitted as nerf_fit fits it (nerf/fit.py: depth poses, colour and panoptic phase, one full-size
+    render per validation frame, instance completion), then scored."""
+    fit = fit_panoptic_window(data, labels, ncfg, pcfg, depth_poses=depth_poses)
+    res, pres = fit.colour, fit.panoptic
+    preds = [(res.renders[int(i)]["semantic"], res.renders[int(i)]["instance"]) for i in np.flatnonzero(~data.is_train)]
+    return {"psnr": float(np.mean(list(res.val_psnr.values()))), **score(preds, gts),
+            "fit_min_per_window": (res.fit_s + pres.fit_s) / 60, "render_s_per_image": res.render_s_per_image,
+            "params": res.params + pres.params, "colour_steps": ncfg.steps, "panoptic_steps": pcfg.steps,
+            "rays_per_step": ncfg.rays_per_step,
             "samples_per_ray": float(np.mean([h["samples_per_ray"] for h in res.history]))}
 
 
@@ -159,7 +148,6 @@ def run(seq: str = "synth_row", windows_sel: list[int] | None = None, colour_ste
         det = score([(labels.semantic[i], labels.instance[i]) for i in val], gts)
         rows.append({"method": "detector input", "poses": "-", "status": "ok", "note": "", **det, **common})
         print(f"window {wid}: detector PQ {det['pq']:.3f} mIoU {det['miou']:.3f}", flush=True)
-        icp_poses = None
         for name, poses, ncfg_kw, pcfg_kw in methods(colour_steps, with_l):
             kw = dict(ncfg_kw)
             ncfg = preset(kw.pop("preset"), **kw, steps=colour_steps, seed=wid)
@@ -172,12 +160,8 @@ def run(seq: str = "synth_row", windows_sel: list[int] | None = None, colour_ste
                     continue
                 d = copy.copy(data)
                 d.poses_c2w = pose_matrix(cw[["tx", "ty", "tz", "qx", "qy", "qz", "qw"]].to_numpy(np.float64))
-            if poses == DEPTH_ICP:
-                if icp_poses is None:  # the kept frames: every training frame, a few validation ones
-                    icp_poses = depth_initial_poses("icp", data.depths, data.intrinsics, data.poses_c2w)[0]
-                d = copy.copy(data)
-                d.poses_c2w = icp_poses
-            r = fit_and_score(d, labels, gts, ncfg, replace(base_p, **pcfg_kw))
+            # DEPTH_ICP: ICP on the kept frames (every training frame, a few validation ones)
+            r = fit_and_score(d, labels, gts, ncfg, replace(base_p, **pcfg_kw), "icp" if poses == DEPTH_ICP else "off")
             rows.append({"method": name, "poses": poses, "status": "ok", "note": why if poses == "COLMAP" else "",
                          **r, **common})
             print(f"window {wid}: {name} / {poses}: PSNR {r['psnr']:.2f} PQ {r['pq']:.3f} mIoU {r['miou']:.3f} "
