@@ -20,8 +20,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from pipeline import campaign_dataset, dag, parallel
 from pipeline import config as cfgmod
-from pipeline import dag, parallel
 from pipeline.runner import PipelineError, Runner, StageResult
 
 ROWS_SECTION = "rows"
@@ -162,16 +162,10 @@ def run_rows(seqs: list[str], data_root: Path = Path("data"), config_file: Path 
     return [outcomes[s] for s in seqs]
 
 
-def campaign_dir(data_root: Path) -> Path:
-    return Path(data_root) / "processed" / "_campaign"
-
-
 def run_campaign(seqs: list[str], data_root: Path = Path("data"), config_file: Path | None = None,
                  overrides: list[str] | tuple[str, ...] = (), scheduler: str | None = None, force: bool = False,
                  show_progress: bool | None = None) -> list[RowOutcome]:
     """run_rows, then the campaign dataset and report under data/processed/_campaign/ (one atomic swap)."""
-    from pipeline import campaign_dataset
-
     outcomes = run_rows(seqs, data_root, config_file, overrides, scheduler, force, show_progress)
     campaign_dataset.write(Path(data_root), outcomes)
     return outcomes

@@ -43,6 +43,11 @@ _DATE_IN_NAME = re.compile(r"(?<!\d)(\d{4})-?(\d{2})-?(\d{2})(?!\d)")
 _EARLIEST_STAMP_NS = 946_684_800 * 10**9  # 2000-01-01T00:00:00Z
 
 
+def campaign_dir(data_root: Path) -> Path:
+    """The campaign dataset's folder: data/processed/_campaign."""
+    return Path(data_root) / "processed" / "_campaign"
+
+
 def recording_date(seq: str, first_stamp_ns: int | None) -> tuple[dt.date | None, str]:
     """(date, source): a valid date written in the sequence name ('name'; e.g. bup20_2020-09-24_row3 for the
     BUP20 release's 2020-09-24/row3), else the first frame's stamp as a UTC date ('first_stamp'), else (None, '')."""
@@ -151,7 +156,6 @@ def write(data_root: Path, outcomes: list) -> Path:
     """Gather the finished rows of `outcomes` (pipeline.campaign.RowOutcome) into data/processed/_campaign/
     (replacing the previous campaign's folder atomically); returns that folder."""
     from pipeline import campaign_report
-    from pipeline.campaign import campaign_dir
 
     final = campaign_dir(data_root)
     staging = io.staging_dir(final)

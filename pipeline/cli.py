@@ -91,7 +91,8 @@ def _bench(name: str, argv: list[str]) -> int:
 
 
 def _campaign(args: argparse.Namespace) -> int:
-    from pipeline.campaign import campaign_dir, run_campaign
+    from pipeline.campaign import run_campaign
+    from pipeline.campaign_dataset import campaign_dir
 
     outcomes = run_campaign(args.seqs, data_root=args.data_root, config_file=args.config,
                             overrides=list(args.overrides), scheduler=args.scheduler, force=args.force,
