@@ -112,10 +112,22 @@ def stage_defaults(name: str):
 
 def run_stage(seq: str, data_root: Path, stage: str, overrides: list[str] | tuple[str, ...] = (),
               tables: dict[str, pd.DataFrame] | None = None) -> tuple[dict[str, pd.DataFrame], float]:
-    """Run pipeline stage `stage` through the runner on sequence `seq` without touching its data: in a temporary
-    data/ whose datasets link to those under `data_root`, except `tables` (name -> DataFrame) written in place of
-    the stored ones. Returns the stage's output tables and the seconds the stage ran."""
+    """Run pipeline stage `stage` through the runner on sequence `seq` without touching its data (run_stages).
+    Returns the stage's output tables and the seconds the stage ran."""
+    out, results = run_stages(seq, data_root, [stage], overrides, tables)
+    return out, results[0].seconds
+
+
+def run_stages(seq: str, data_root: Path, stages: list[str], overrides: list[str] | tuple[str, ...] = (),
+               tables: dict[str, pd.DataFrame] | None = None, config: dict | None = None):
+    """Run pipeline stages `stages` (in DAG order, each on the outputs of the ones before) through the runner on
+    sequence `seq` without touching its data: in a temporary data/ whose datasets link to those under
+    `data_root`, except the stages' outputs and `tables` (name -> DataFrame) written in place of the stored ones.
+    `config` ({section: {key: value}}) is the run's config file, `overrides` go over it (section.key=value).
+    Returns the stages' output tables and the runner's StageResult per stage."""
     import tempfile
+
+    import yaml
 
     from pipeline import dag
     from pipeline.catalog import DATASETS
@@ -123,7 +135,7 @@ def run_stage(seq: str, data_root: Path, stage: str, overrides: list[str] | tupl
     from pipeline.runner import Runner
 
     tables = tables or {}
-    outputs = dag.load_stage(stage).outputs
+    outputs = [o for name in stages for o in dag.load_stage(name).outputs]
     with tempfile.TemporaryDirectory(prefix="pag_bench_") as tmp:
         root = Path(tmp) / "data"
         for name, ds in DATASETS.items():
@@ -133,7 +145,12 @@ def run_stage(seq: str, data_root: Path, stage: str, overrides: list[str] | tupl
             elif src.exists() and name not in outputs:
                 dst.parent.mkdir(parents=True, exist_ok=True)
                 dst.symlink_to(src.resolve(), target_is_directory=src.is_dir())
-        result = Runner(seq, data_root=root, overrides=list(overrides), show_progress=False).run([stage], force=True)[0]
+        config_file = None
+        if config:
+            config_file = Path(tmp) / "config.yaml"
+            config_file.write_text(yaml.safe_dump(config, sort_keys=False))
+        results = Runner(seq, data_root=root, config_file=config_file, overrides=list(overrides),
+                         show_progress=False).run(stages, force=True)
         out = {o: read_table(DATASETS[o].path(root, seq), DATASETS[o].schema)
                for o in outputs if DATASETS[o].kind == "table"}
-    return out, result.seconds
+    return out, results

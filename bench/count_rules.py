@@ -6,10 +6,11 @@ row counted with every rule on, scored by the evaluate stage.
 The rules (fruit_count settings) are those that decide `counted`: fragments (min_count_frames,
 min_count_points, with the lone_fragment_m exemption), unconfirmed fruits (detector_alpha), the far row
 (max_depth_m) and fruits wider than any fruit of the crop (max_count_diameter_m). Only fruit_count and
-evaluate run again, in memory, on the row's fused panoptic frames as they are on disk (the NeRF is not
-refitted, and the row's own tables are not touched), each with the row's resolved configuration and one
-rule switched off. By default the rows are the finished rows of `pag bench rows` (data/bench/rows/*.json;
-with --quick those of `pag bench rows --quick`, and the table is count_rules_quick.parquet).
+evaluate run again, through the runner in a temporary data/ linked to the row's, on the row's fused panoptic
+frames as they are on disk (the NeRF is not refitted, and the row's own tables are not touched), each with
+the row's resolved configuration and one rule switched off. By default the rows are the finished rows of
+`pag bench rows` (data/bench/rows/*.json; with --quick those of `pag bench rows --quick`, and the table is
+count_rules_quick.parquet).
 
 A rule helps a row when switching it off lowers the F1 of the counted fruits (harmonic mean of precision
 and recall, fruits matched to ground truth by 3D position) and hurts it when switching it off raises it.
@@ -23,18 +24,15 @@ import argparse
 import dataclasses
 import json
 import sys
-import tempfile
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 import yaml
 
-from bench._common import write_parquet
+from bench._common import run_stages, write_parquet
 from pipeline import dag
 from pipeline.catalog import dataset
-from pipeline.io import read_table
-from pipeline.stage import StageContext
 
 RULES_OFF: dict[str, dict[str, object]] = {
     "fragments": {"min_count_frames": 1, "min_count_points": 0},
@@ -47,40 +45,29 @@ SCORES = {"count_gt": "count_gt", "count_pred": "count_pred", "count_error_rel":
           "recall": "fruit_recall", "precision": "fruit_precision"}
 """table column -> row-scope metric of the evaluation table."""
 TOLERANCE = 1e-9
+STAGES = ("fruit_count", "evaluate")
+"""The stages rerun per variant, in this order."""
 
 
-def stage_inputs(stage: dag.Stage, data_root: Path, seq: str) -> dict:
-    """The stage's inputs as the runner hands them over (tables read, folders as paths)."""
+def row_config(data_root: Path, seq: str) -> dict[str, dict]:
+    """The settings of STAGES as the row last ran them (its config.resolved.yaml), per stage; settings the stage
+    no longer has are left out, and a stage the file lacks keeps its defaults."""
+    path = data_root / "processed" / seq / "config.resolved.yaml"
+    resolved = (yaml.safe_load(path.read_text()) or {}) if path.is_file() else {}
     out = {}
-    for name in stage.inputs + stage.optional_inputs:
-        ds = dataset(name)
-        path = ds.path(data_root, seq)
-        if path.exists():
-            out[name] = read_table(path, ds.schema) if ds.kind == "table" else path
+    for name in STAGES:
+        names = {f.name for f in dataclasses.fields(dag.load_stage(name).config_class)}
+        out[name] = {k: v for k, v in (resolved.get(name) or {}).items() if k in names}
     return out
 
 
-def resolved_config(data_root: Path, seq: str, stage: dag.Stage):
-    """The stage's Config as the row last ran it (config.resolved.yaml), defaults where absent."""
-    path = data_root / "processed" / seq / "config.resolved.yaml"
-    section = (yaml.safe_load(path.read_text()) or {}).get(stage.name, {}) if path.is_file() else {}
-    names = {f.name for f in dataclasses.fields(stage.config_class)}
-    return stage.config_class(**{k: v for k, v in section.items() if k in names})
-
-
 def score_variant(data_root: Path, seq: str, off: dict[str, object]) -> dict[str, float]:
-    """fruit_count with the settings `off` over the row's resolved ones, then evaluate; its row scores."""
-    count, evaluate = dag.load_stage("fruit_count"), dag.load_stage("evaluate")
-    cfg = dataclasses.replace(resolved_config(data_root, seq, count), **off)
-    with tempfile.TemporaryDirectory() as tmp:
-        staging = {o: Path(tmp) / o for o in count.outputs if dataset(o).kind == "dir"}
-        for path in staging.values():
-            path.mkdir()
-        ctx = StageContext(stage=count.name, seq=seq, data_root=data_root, staging=staging, show_progress=False)
-        tables = count.module.run(stage_inputs(count, data_root, seq), cfg, ctx)
-    inputs = {**stage_inputs(evaluate, data_root, seq), **tables}
-    ctx = StageContext(stage=evaluate.name, seq=seq, data_root=data_root, staging={}, show_progress=False)
-    ev = evaluate.module.run(inputs, resolved_config(data_root, seq, evaluate), ctx)["evaluation"]
+    """fruit_count with the settings `off` over the row's resolved ones, then evaluate, through the runner in a
+    temporary data/ linked to the row's (bench._common.run_stages: the row's own outputs are not touched); the
+    row scores of the evaluation."""
+    config = row_config(data_root, seq)
+    config["fruit_count"] = {**config["fruit_count"], **off}
+    ev = run_stages(seq, data_root, list(STAGES), config=config)[0]["evaluation"]
     row = ev[ev.scope == "row"].set_index("metric").value
     out = {col: float(row.get(metric, np.nan)) for col, metric in SCORES.items()}
     p, r = out["precision"], out["recall"]

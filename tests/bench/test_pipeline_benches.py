@@ -86,7 +86,7 @@ def test_rows_quick_runs_the_pipeline_and_is_checkpointed(tmp_path, capsys):
     with pytest.raises(ValueError, match="no row 'nope'"):
         rows.main(["--quick", "--rows", "nope", "--out", str(out)])
 
-    # the counting rules, checked on the finished row: fruit_count and evaluate rerun in memory
+    # the counting rules, checked on the finished row: fruit_count and evaluate rerun through the runner
     before = {p: p.stat().st_mtime_ns for p in (data / "processed" / "synth_rowsq_dense").glob("*.parquet")}
     assert count_rules.main(["--quick", "--data-root", str(data), "--out", str(out)]) == 0  # finished rows
     cr = pd.read_parquet(out / "count_rules_quick.parquet")
@@ -106,6 +106,14 @@ def test_rows_quick_runs_the_pipeline_and_is_checkpointed(tmp_path, capsys):
         count_rules.main(["--data-root", str(data), "--out", str(out)])  # the full family has not run here
     with pytest.raises(FileNotFoundError, match="run `pag all --seq synth_none`"):
         count_rules.main(["--seqs", "synth_none", "--data-root", str(data), "--out", str(out)])
+
+
+def test_count_rules_rerun_each_stage_with_the_settings_the_row_ran_with(tmp_path):
+    resolved = tmp_path / "processed" / "synth_x" / "config.resolved.yaml"
+    resolved.parent.mkdir(parents=True)
+    resolved.write_text("fruit_count:\n  max_depth_m: 2.5\n  a_setting_since_removed: 1\nwindows:\n  half_width: 3\n")
+    assert count_rules.row_config(tmp_path, "synth_x") == {"fruit_count": {"max_depth_m": 2.5}, "evaluate": {}}
+    assert count_rules.row_config(tmp_path, "synth_y") == {"fruit_count": {}, "evaluate": {}}  # no file: defaults
 
 
 def test_count_rule_verdicts_weigh_every_row():
