@@ -104,9 +104,10 @@ class NerfConfig:
     nothing."""
     near_m: float = 0.15
     """near plane, metres (> 0): nothing closer to the camera is modelled."""
-    far_m: float = 3.5
-    """far plane, metres (> near_m): should cover everything visible (far row, back wall); it also sets the
-    window's bounds."""
+    far_m: float = 0.0
+    """far plane, metres (> near_m; 0 = derived from each window's sensor depth: 1.1 x its 99th percentile,
+    rounded up to 0.5 m, nerf/window.py depth_far_m). It sets the window's bounds and where rays stop, so it
+    must cover everything visible (far row, back wall); set it only to force one value on every window."""
     cone_angle: float = 0.0129
     """radians (> 0): the marching step at depth t is cone_angle x t (cone marching; 0.0129 = 1.3 cm at 1 m,
     about three pixel footprints of a 320 px wide image across 69 degrees). It depends on the scene, not on the
@@ -137,6 +138,8 @@ class NerfConfig:
     def __post_init__(self) -> None:
         if not self.cone_angle > 0:
             raise ValueError(f"cone_angle must be > 0 (radians), got {self.cone_angle}")
+        if not (self.far_m == 0 or self.far_m > self.near_m):
+            raise ValueError(f"far_m must be 0 (derived from depth) or > near_m ({self.near_m}), got {self.far_m}")
         if not self.rays_area_exponent >= 0:
             raise ValueError(f"rays_area_exponent must be >= 0, got {self.rays_area_exponent}")
 

@@ -25,6 +25,30 @@ import numpy as np
 
 from nerf.geometry import align_similarity, rotation_angle_deg, similarity_matrix
 from nerf.surfaces import unproject
+from nerf.window import round_up, valid_depth_sample
+
+NEAR_PERCENTILE = 5.0
+"""ICP's depth limit is derived from this percentile of the window's valid depth (its nearest surfaces)."""
+NEAR_REACH = 2.5
+"""... times this reach: a structured-light or stereo sensor's depth noise grows with depth squared, so points
+beyond 2.5x the nearest surfaces carry over 6x their noise."""
+REFERENCE_DEPTH_M = 1.5
+"""ICP's voxel size and inlier distance (VOXEL_M, MAX_DIST_M) are set for a depth limit of this many metres and
+grow in proportion to the limit (point spacing and depth noise both grow with depth)."""
+VOXEL_M = 0.004
+MAX_DIST_M = 0.01
+
+
+def icp_depth_limit_m(depths: np.ndarray, far_m: float = 0.0) -> float:
+    """ICP's depth limit for a window's depth frames [N, H, W] (metres, 0 = none): NEAR_REACH x the
+    NEAR_PERCENTILE of the valid depth, rounded up to 0.5 m, at most far_m (if > 0); REFERENCE_DEPTH_M without
+    valid depth. Example: a glasshouse row whose near row starts at 0.48 m -> 1.5 m; an office whose nearest
+    surfaces lie at 1.5-1.7 m -> 4.0-4.5 m."""
+    v = valid_depth_sample(depths)
+    if v.size == 0:
+        return REFERENCE_DEPTH_M
+    limit = round_up(NEAR_REACH * float(np.percentile(v, NEAR_PERCENTILE)))
+    return min(limit, far_m) if far_m > 0 else limit
 
 
 @dataclass(frozen=True)
@@ -65,7 +89,7 @@ def register(src, dst, init: np.ndarray, max_dist_m: float, min_points: int = 10
 
 
 def odometry_scale(depths: np.ndarray, intrinsics: np.ndarray, c2w: np.ndarray, gap: int = 8, stride: int = 4,
-                   max_depth_m: float = 1.5, voxel_m: float = 0.004, max_dist_m: float = 0.01,
+                   max_depth_m: float = REFERENCE_DEPTH_M, voxel_m: float = VOXEL_M, max_dist_m: float = MAX_DIST_M,
                    min_fitness: float = 0.5, min_baseline_m: float = 0.03, min_pairs: int = 5,
                    max_spread: float = 0.02, max_change: float = 0.2) -> ScaleEstimate:
     """Scale of a window's odometry from depth frames [N, H, W] (metres, 0 = none), intrinsics [N, 4]
@@ -120,15 +144,17 @@ def place_onto(poses: np.ndarray, ref: np.ndarray) -> np.ndarray:
     return similarity_matrix(s, r, t)
 
 
-def icp_trajectory(depths: np.ndarray, intrinsics: np.ndarray, c2w: np.ndarray, max_depth_m: float = 1.5,
-                   voxel_m: float = 0.004, max_dist_m: float = 0.01, min_fitness: float = 0.5,
+def icp_trajectory(depths: np.ndarray, intrinsics: np.ndarray, c2w: np.ndarray,
+                   max_depth_m: float = REFERENCE_DEPTH_M, voxel_m: float = VOXEL_M, max_dist_m: float = MAX_DIST_M, min_fitness: float = 0.5,
                    max_link_change_m: float = 0.01, max_link_change_deg: float = 1.0) -> tuple[np.ndarray, int, str]:
     """A window's camera poses [N, 4, 4] from its depth frames: each consecutive pair's relative pose by
     point-to-plane ICP started from the odometry's, chained from the first frame, then placed onto the
     odometry by one rigid transform (place_onto: mean orientation and mean position; the window stays in the
     odometry's frame, only its shape comes from depth). A link keeps the odometry's relative pose
     when ICP does not converge (fitness < min_fitness) or moves it by more than max_link_change_m /
-    max_link_change_deg (a wrong lock). Returns (poses, links from ICP, note)."""
+    max_link_change_deg (a wrong lock). The chain is kept only where the depth of frames AGREEMENT_GAP apart
+    agrees better with it than with the odometry (depth_disagreement); else the odometry is returned with 0
+    links. Returns (poses, links from ICP, note)."""
     n = len(depths)
     clouds = [depth_cloud(d, k, max_depth_m, voxel_m) for d, k in zip(depths, intrinsics)]
     out = [c2w[0].copy()]
@@ -147,25 +173,72 @@ def icp_trajectory(depths: np.ndarray, intrinsics: np.ndarray, c2w: np.ndarray, 
     poses = np.stack(out)
     placed = place_onto(poses, c2w) @ poses
     note = "" if good == n - 1 else f"{n - 1 - good} of {n - 1} links kept the odometry's relative pose"
+    if good and n > 2:
+        # chained links add up their errors: keep the chain only where it makes frames several links apart agree
+        # better than the odometry does (a noisy far-range sensor's links can be worse than a good odometry's)
+        gap = min(AGREEMENT_GAP, n - 1)
+        icp_m, odo_m = (depth_disagreement(clouds, p, max_dist_m, gap) for p in (placed, c2w))
+        if not icp_m < odo_m:
+            return c2w, 0, (f"ICP's trajectory disagrees more with the depth than the odometry's ({1e3 * icp_m:.2f} "
+                            f"against {1e3 * odo_m:.2f} mm, frames {gap} apart): odometry kept")
     return placed, good, note
+
+
+AGREEMENT_GAP = 8
+"""Frames apart of the pairs whose depth agreement decides between the ICP chain and the odometry."""
+
+
+def depth_disagreement(clouds: list, c2w: np.ndarray, max_dist_m: float, gap: int, stride: int = 2) -> float:
+    """How far the depth clouds (depth_cloud: camera frames, with normals) of frames `gap` apart lie from each
+    other's surfaces when placed with poses c2w [N, 4, 4]: the mean over pairs (i, i + gap), every `stride`
+    frames, and over frame i's points of the point-to-plane distance |(p - q) . n_q| from frame i's points p to their nearest
+    point q of frame j, each capped at 3 x max_dist_m (also where q is farther than that: a surface frame j
+    does not see). Point-to-plane, as ICP measures, so two samplings of one surface agree. Metres; lower =
+    the poses agree better with the depth."""
+    from scipy.spatial import cKDTree
+
+    cap = 3 * max_dist_m
+    out = []
+    for i in range(0, len(c2w) - gap, stride):
+        j = i + gap
+        dst = np.asarray(clouds[j].points)
+        if len(clouds[i].points) == 0 or len(dst) == 0 or not clouds[j].has_normals():
+            continue
+        rel = np.linalg.inv(c2w[j]) @ c2w[i]
+        src = np.asarray(clouds[i].points) @ rel[:3, :3].T + rel[:3, 3]
+        near, idx = cKDTree(dst).query(src, distance_upper_bound=cap)
+        found = np.isfinite(near)
+        dist = np.full(len(src), cap)
+        normals = np.asarray(clouds[j].normals)[idx[found]]
+        dist[found] = np.minimum(np.abs(np.einsum("ij,ij->i", src[found] - dst[idx[found]], normals)), cap)
+        out.append(float(dist.mean()))
+    return float(np.mean(out)) if out else float("inf")
 
 
 DepthPoses = Literal["off", "scale", "icp"]
 
 
-def depth_initial_poses(mode: DepthPoses, depths: np.ndarray, intrinsics: np.ndarray, c2w: np.ndarray
-                        ) -> tuple[np.ndarray, dict]:
+def depth_initial_poses(mode: DepthPoses, depths: np.ndarray, intrinsics: np.ndarray, c2w: np.ndarray,
+                        max_depth_m: float = 0.0) -> tuple[np.ndarray, dict]:
     """A window's initial poses [N, 4, 4] (frames in time order) corrected by `mode`, and what was done:
     {'depth_poses': mode, 'odometry_scale': scale or NaN, 'depth_pose_votes': ICP pairs or links used,
-    'depth_pose_note': why less was done ('' if nothing to say)}."""
+    'depth_pose_note': why less was done ('' if nothing to say), 'icp_max_depth_m': the depth limit used (NaN
+    with mode 'off')}. ICP takes the points up to `max_depth_m` (0 = icp_depth_limit_m of the depths), with a
+    voxel size and inlier distance grown in proportion to that limit (VOXEL_M, MAX_DIST_M at
+    REFERENCE_DEPTH_M)."""
     if mode == "off":
-        return c2w, {"depth_poses": mode, "odometry_scale": float("nan"), "depth_pose_votes": 0, "depth_pose_note": ""}
+        return c2w, {"depth_poses": mode, "odometry_scale": float("nan"), "depth_pose_votes": 0, "depth_pose_note": "",
+                     "icp_max_depth_m": float("nan")}
+    limit = max_depth_m if max_depth_m > 0 else icp_depth_limit_m(depths)
+    grow = limit / REFERENCE_DEPTH_M
+    reach = dict(max_depth_m=limit, voxel_m=VOXEL_M * grow, max_dist_m=MAX_DIST_M * grow)
     if mode == "scale":
-        est = odometry_scale(depths, intrinsics, c2w)
+        est = odometry_scale(depths, intrinsics, c2w, **reach)
         return stretch(c2w, est.scale), {"depth_poses": mode, "odometry_scale": est.scale,
-                                         "depth_pose_votes": est.pairs, "depth_pose_note": est.note}
+                                         "depth_pose_votes": est.pairs, "depth_pose_note": est.note,
+                                         "icp_max_depth_m": limit}
     if mode == "icp":
-        poses, links, note = icp_trajectory(depths, intrinsics, c2w)
+        poses, links, note = icp_trajectory(depths, intrinsics, c2w, **reach)
         return poses, {"depth_poses": mode, "odometry_scale": float("nan"), "depth_pose_votes": links,
-                       "depth_pose_note": note}
+                       "depth_pose_note": note, "icp_max_depth_m": limit}
     raise ValueError(f"unknown depth_poses mode {mode!r}; modes: ['off', 'scale', 'icp']")

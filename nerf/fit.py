@@ -40,7 +40,8 @@ class ColourPhase:
     """the window as fitted: its poses_c2w are the depth-corrected initial poses."""
     result: FitResult
     depth_info: dict
-    """what depth_initial_poses did: depth_poses, odometry_scale, depth_pose_votes, depth_pose_note."""
+    """what depth_initial_poses did: depth_poses, odometry_scale, depth_pose_votes, depth_pose_note,
+    icp_max_depth_m."""
 
 
 @dataclass
@@ -55,17 +56,19 @@ class WindowFit:
     initial_poses: np.ndarray
     """[N, 4, 4] the poses the colour phase started from (the window's poses corrected with depth)."""
     depth_info: dict
-    """what depth_initial_poses did: depth_poses, odometry_scale, depth_pose_votes, depth_pose_note."""
+    """what depth_initial_poses did: depth_poses, odometry_scale, depth_pose_votes, depth_pose_note,
+    icp_max_depth_m."""
 
 
 def fit_colour(data: WindowData, cfg: NerfConfig, depth_poses: DepthPoses = "off", device: str = "cpu",
-               progress: Progress | None = None, name: str = "window") -> ColourPhase:
+               progress: Progress | None = None, name: str = "window", icp_max_depth_m: float = 0.0) -> ColourPhase:
     """The colour phase of fit_panoptic_window: the window's initial poses corrected with its depth frames
     (nerf/depth_poses.py, `depth_poses`), then the colour fit from them (nerf/trainer.py, without renders).
     `data` is not changed."""
     report = progress or _silent
     report(0, 1, {"phase": "depth poses"})
-    poses, depth_info = depth_initial_poses(depth_poses, data.depths, data.intrinsics, data.poses_c2w)
+    poses, depth_info = depth_initial_poses(depth_poses, data.depths, data.intrinsics, data.poses_c2w,
+                                            max_depth_m=icp_max_depth_m)
     report(1, 1, {"phase": "depth poses"})
     fitted = copy.copy(data)
     fitted.poses_c2w = poses
@@ -80,7 +83,7 @@ def fit_panoptic_window(data: WindowData, labels: WindowLabels | Callable[[], Wi
                         cfg: NerfConfig, panoptic: PanopticConfig, depth_poses: DepthPoses = "off",
                         render_scale: float = 1.0, full_size: Collection[int] = (), device: str = "cpu",
                         progress: Progress | None = None, colour: ColourPhase | None = None,
-                        name: str = "window") -> WindowFit:
+                        name: str = "window", icp_max_depth_m: float = 0.0) -> WindowFit:
     """Fit window `data` and render its validation frames.
 
     1. fit_colour: initial poses corrected with depth (`depth_poses`), colour phase with `cfg`;
@@ -96,7 +99,7 @@ def fit_panoptic_window(data: WindowData, labels: WindowLabels | Callable[[], Wi
     `name` is how errors of the two fits name the window ('window 3: ...'). Progress goes to
     `progress(done, total, info)` (see Progress)."""
     if colour is None:
-        colour = fit_colour(data, cfg, depth_poses, device, progress, name)
+        colour = fit_colour(data, cfg, depth_poses, device, progress, name, icp_max_depth_m)
     elif (colour.cfg, colour.depth_poses) != (cfg, depth_poses):
         raise ValueError(f"{name}: the colour phase given was fitted with other settings than cfg and "
                          f"depth_poses={depth_poses!r} (it has depth_poses={colour.depth_poses!r})")

@@ -128,21 +128,45 @@ class NerfModel:
 
 
 @torch.no_grad()
-def init_occupancy(model: NerfModel, depths: Tensor, c2w: Tensor, k: Tensor, stride: int = 2) -> None:
+def init_occupancy(model: NerfModel, depths: Tensor, c2w: Tensor, k: Tensor, stride: int = 2,
+                   carve_stride: int = 8, carve_samples: int = 192) -> None:
     """Occupied cells from the back-projected sensor depth (with the odometry poses), plus cells along
-    rays without valid depth (the sensor saw nothing there, so anything may be there)."""
+    rays without valid depth (the sensor saw nothing there, so anything may be there) except where another
+    ray saw through: a cell in front of a valid depth (nearer than CARVE_SHARE of it, less one cell) on any
+    ray of every `carve_stride`-th pixel is empty. A real sensor has no depth at the image border, on glare and
+    beyond its range; without the carving those rays fill the room in front of every surface, and rays spend
+    their samples there."""
     n, h, w = depths.shape
-    v, u = torch.meshgrid(torch.arange(0, h, stride, device=depths.device) + 0.5,
-                          torch.arange(0, w, stride, device=depths.device) + 0.5, indexing="ij")
-    u, v = u.reshape(-1), v.reshape(-1)
-    surf, free_o, free_d = [], [], []
+    dev = depths.device
+    surf, free_o, free_d, seen_o, seen_d, seen_t = [], [], [], [], [], []
     for i in range(n):
-        dd = depths[i, v.long(), u.long()]
-        o, d = pixel_rays(k[i].expand(u.shape[0], 4), c2w[i].expand(u.shape[0], 4, 4), u, v)
-        ok = (dd > model.cfg.near_m) & (dd < model.cfg.far_m)
-        surf.append(o[ok] + d[ok] * dd[ok, None])
-        free_o.append(o[~ok])
-        free_d.append(d[~ok])
-    t = torch.linspace(model.cfg.near_m, model.cfg.far_m, 64, device=depths.device)
+        for px, keep in ((stride, "surface"), (carve_stride, "seen")):
+            v, u = torch.meshgrid(torch.arange(0, h, px, device=dev) + 0.5, torch.arange(0, w, px, device=dev) + 0.5,
+                                  indexing="ij")
+            u, v = u.reshape(-1), v.reshape(-1)
+            dd = depths[i, v.long(), u.long()]
+            o, d = pixel_rays(k[i].expand(u.shape[0], 4), c2w[i].expand(u.shape[0], 4, 4), u, v)
+            ok = (dd > model.cfg.near_m) & (dd < model.cfg.far_m)
+            if keep == "surface":
+                surf.append(o[ok] + d[ok] * dd[ok, None])
+                free_o.append(o[~ok])
+                free_d.append(d[~ok])
+            else:
+                seen_o.append(o[ok])
+                seen_d.append(d[ok])
+                seen_t.append(dd[ok])
     fo, fd = torch.cat(free_o), torch.cat(free_d)
-    model.grid.init_from_points(torch.cat(surf), (fo, fd, t) if len(fo) else None, dilate=model.cfg.occupancy_dilate)
+    free = seen_empty = None
+    if len(fo):
+        free = (fo, fd, torch.linspace(model.cfg.near_m, model.cfg.far_m, 64, device=dev))
+        so, sd, st = torch.cat(seen_o), torch.cat(seen_d), torch.cat(seen_t)
+        cell = float(model.grid.cell.max())
+        end = (CARVE_SHARE * st - cell).clamp_min(model.cfg.near_m)                       # [R]
+        frac = torch.linspace(0, 1, carve_samples, device=dev)
+        seen_empty = model.grid.cells_along(so, sd, model.cfg.near_m + (end - model.cfg.near_m)[:, None] * frac)
+    model.grid.init_from_points(torch.cat(surf), free, dilate=model.cfg.occupancy_dilate, seen_empty=seen_empty)
+
+
+CARVE_SHARE = 0.9
+"""init_occupancy carves the space nearer than this share of a valid depth (less one cell): the sensor's depth
+noise stays well inside the last tenth of the depth."""

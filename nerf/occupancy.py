@@ -45,26 +45,33 @@ class OccupancyGrid:
         return self.lo + (torch.stack([i, j, k], -1).float() + 0.5) * self.cell
 
     def init_from_points(self, surface_pts: Tensor, free_rays: tuple[Tensor, Tensor, Tensor] | None = None,
-                         dilate: int = 1) -> None:
+                         dilate: int = 1, seen_empty: Tensor | None = None) -> None:
         """Occupied = cells within `dilate` cells of a surface point, plus cells along `free_rays`
-        (origins, directions, t samples) where the sensor gave no depth."""
+        (origins, directions, t samples) where the sensor gave no depth, except the cells in `seen_empty`
+        ([cells] bool, from `cells_along`): space another ray of the sensor saw through is empty."""
         occ = torch.zeros_like(self.occupied)
         chunk = 1 << 18      # points (or rays) at a time: a window's free rays x t samples would take gigabytes
         for s in range(0, surface_pts.shape[0], chunk):
             flat, inside = self.index(surface_pts[s:s + chunk])
             occ[flat[inside]] = True
         if free_rays is not None:
-            o, d, t = free_rays
-            step = max(1, chunk // max(len(t), 1))
-            for s in range(0, o.shape[0], step):
-                pts = (o[s:s + step, None] + d[s:s + step, None] * t[None, :, None]).reshape(-1, 3)
-                f, ins = self.index(pts)
-                occ[f[ins]] = True
-        grid = occ.reshape(*self.res.tolist()).float()[None, None]
-        if dilate:
-            grid = torch.nn.functional.max_pool3d(grid, 2 * dilate + 1, stride=1, padding=dilate)
-        self.occupied = grid.reshape(-1) > 0
+            free = self.cells_along(*free_rays)
+            occ |= free & ~seen_empty if seen_empty is not None else free
+        self.occupied = _dilate(occ, self.res, dilate) if dilate else occ
         self.ema = torch.where(self.occupied, torch.full_like(self.ema, 1e3), torch.zeros_like(self.ema))
+
+    def cells_along(self, o: Tensor, d: Tensor, t: Tensor, chunk: int = 1 << 18) -> Tensor:
+        """[cells] bool: the cells holding a point o + d t of some ray (o, d [R, 3]) at some t, where t is [S]
+        (the same depths for every ray) or [R, S] (each ray its own)."""
+        hit = torch.zeros_like(self.occupied)
+        per_ray = t.shape[-1]
+        step = max(1, chunk // max(per_ray, 1))
+        for s in range(0, o.shape[0], step):
+            ts = t[s:s + step] if t.dim() == 2 else t[None]
+            pts = (o[s:s + step, None] + d[s:s + step, None] * ts[..., None]).reshape(-1, 3)
+            f, ins = self.index(pts)
+            hit[f[ins]] = True
+        return hit
 
     @torch.no_grad()
     def update(self, density_fn, step_m: float, threshold: float, decay: float = 0.9, random_share: float = 0.01,
@@ -93,3 +100,9 @@ class OccupancyGrid:
         g.lo, g.hi, g.res, g.ema, g.occupied = (state[k] for k in ("lo", "hi", "res", "ema", "occupied"))
         g.cell = (g.hi - g.lo) / g.res
         return g
+
+
+def _dilate(cells: Tensor, res: Tensor, by: int) -> Tensor:
+    """[cells] bool grown by `by` cells in every direction (a 3D max filter)."""
+    grid = cells.reshape(*res.tolist()).float()[None, None]
+    return torch.nn.functional.max_pool3d(grid, 2 * by + 1, stride=1, padding=by).reshape(-1) > 0

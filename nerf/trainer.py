@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import torch
@@ -25,7 +25,7 @@ from nerf.occupancy import OccupancyGrid
 from nerf.pixel_sampling import draw_pixels, gradient_cdf
 from nerf.poses import PoseCorrection
 from nerf.render import Samples, accumulate, composite_weights, march, pixel_rays, transmittance
-from nerf.window import WindowData, window_scene
+from nerf.window import WindowData, depth_far_m, window_scene
 
 
 class NonFiniteLoss(FloatingPointError):
@@ -54,6 +54,14 @@ def fused_adam(dev: torch.device) -> bool | None:
     """Adam's fused implementation (one pass over each parameter instead of one per operation) where torch
     has it, else the default."""
     return True if dev.type in ("cpu", "cuda") else None
+
+
+def with_far_plane(cfg: NerfConfig, depths: np.ndarray) -> NerfConfig:
+    """cfg with its far plane resolved: cfg.far_m where set, else derived from the window's depth
+    (depth_far_m; never nearer than cfg.near_m allows)."""
+    if cfg.far_m > 0:
+        return cfg
+    return replace(cfg, far_m=max(depth_far_m(depths), 2 * cfg.near_m))
 
 
 def depth_supervised(depths: Tensor, edge_m: float, far_m: float) -> Tensor:
@@ -85,6 +93,7 @@ def fit_window(data: WindowData, cfg: NerfConfig, device: str = "cpu",
     """Fit the window; with render_val (default) also render every validation frame (FitResult.renders,
     val_psnr, samples_per_ray, render_s_per_image). Without it those stay empty/NaN for the caller to fill
     with `validate()` after a later phase (the panoptic one renders colour and panoptic in one pass)."""
+    cfg = with_far_plane(cfg, data.depths)
     torch.manual_seed(cfg.seed)
     g = torch.Generator(device="cpu").manual_seed(cfg.seed)
     dev = torch.device(device)

@@ -56,6 +56,42 @@ class Scene:
         return Scene(self.centre.to(device), self.scale_m, self.lo.to(device), self.hi.to(device))
 
 
+FAR_PERCENTILE = 99.0
+"""The far plane covers this percentile of a window's valid sensor depth (the rest: flying pixels, glare)."""
+FAR_MARGIN = 1.1
+"""... times this margin (depth noise and surfaces just past the percentile)."""
+RANGE_QUANTUM_M = 0.5
+"""Derived depth limits are rounded up to a multiple of this (metres), so the windows of one recording get
+the same limit from slightly different depth samples."""
+FALLBACK_FAR_M = 3.5
+"""Far plane (metres) of a window without any valid depth: a glasshouse row with its far row and wall."""
+
+
+def valid_depth_sample(depths: np.ndarray, max_values: int = 1 << 21) -> np.ndarray:
+    """The valid (finite, > 0) values of depth images [N, H, W] (metres), from an even subsample of at most
+    about `max_values` pixels."""
+    flat = np.asarray(depths).reshape(-1)
+    step = max(1, flat.size // max_values)
+    v = flat[::step]
+    return v[np.isfinite(v) & (v > 0)]
+
+
+def round_up(x_m: float, quantum_m: float = RANGE_QUANTUM_M) -> float:
+    """x_m rounded up to a multiple of quantum_m. Example: 3.34 -> 3.5, 6.52 -> 7.0."""
+    return float(np.ceil(x_m / quantum_m - 1e-9) * quantum_m)
+
+
+def depth_far_m(depths: np.ndarray) -> float:
+    """The far plane of a window from its sensor depth [N, H, W] (metres, 0 = none): FAR_MARGIN x the
+    FAR_PERCENTILE of the valid depth, rounded up to RANGE_QUANTUM_M (FALLBACK_FAR_M without valid depth).
+    Example: a glasshouse row whose wall is at 3 m (99th percentile 3.04 m) -> 3.5 m; an office whose
+    99th percentile is 5.93 m -> 7.0 m."""
+    v = valid_depth_sample(depths)
+    if v.size == 0:
+        return FALLBACK_FAR_M
+    return round_up(FAR_MARGIN * float(np.percentile(v, FAR_PERCENTILE)))
+
+
 def window_scene(poses: np.ndarray, k: np.ndarray, wh: tuple[int, int], far_m: float) -> Scene:
     """Bounds = the box around every camera centre and its frustum corners at `far_m`."""
     w, h = wh

@@ -37,6 +37,10 @@ SCHEMA = table_schema(
     col("depth_pose_votes", pa.int32(), "'scale': frame pairs whose ICP voted; 'icp': consecutive-frame links taken "
         "from ICP"),
     col("depth_pose_note", pa.string(), "what was left to the odometry and why ('' if nothing)"),
+    col("icp_max_depth_m", pa.float64(), "metres: depth limit of the ICP pose correction (nerf_fit.icp_max_depth_m, or "
+        "derived from the window's depth); null with depth_poses 'off' or a failed window", nullable=True),
+    col("far_m", pa.float64(), "metres: far plane of the window's field (nerf_fit.model.far_m, or derived from its "
+        "depth); null for a failed window", nullable=True),
     col("worker", pa.string(), "name of the dask worker that fitted the window ('' if it failed)"),
     col("checkpoint_path", pa.string(), "model checkpoint (torch.save), relative to data/; '' if failed"),
 )

@@ -46,6 +46,10 @@ class Config:
     the window; 'off' = the odometry (or COLMAP) poses as they are. Pose refinement from colour keeps the
     scale and drift it starts from, so keep 'icp' unless the depth is unusable (then 'scale' or 'off');
     'scale' is bit-for-bit reproducible across processes, ICP only to floating-point noise."""
+    icp_max_depth_m: float = 0.0
+    """depth limit of the ICP pose correction, metres (>= 0; 0 = derived from each window's depth: 2.5 x the 5th
+    percentile of its valid depth, rounded up to 0.5 m, nerf/depth_poses.py icp_depth_limit_m). ICP's voxel and
+    inlier distance grow with it. Set it only where the derived limit keeps too few or too noisy points."""
     workers: int = 0
     """Dask workers for a local cluster (0 = one per core, at most one per window)."""
     threads_per_worker: int = 0
@@ -68,6 +72,8 @@ class Config:
     rendered at (the recorded image area-averaged to that size)."""
 
     def __post_init__(self) -> None:
+        if not self.icp_max_depth_m >= 0:
+            raise ValueError(f"nerf_fit.icp_max_depth_m must be >= 0 metres (0 = derived), got {self.icp_max_depth_m}")
         if not 0 <= self.render_scale <= 1:
             raise ValueError(f"nerf_fit.render_scale must be in [0, 1] (0 = automatic), got {self.render_scale}")
 
@@ -83,7 +89,7 @@ def window_payload(wid: int, w: pd.DataFrame, cfg: Config, mcfg: NerfConfig, dev
     return {"window_id": wid, "frames": w.to_dict("list"), "cfg": replace(mcfg, seed=cfg.seed + wid), "device": device,
             "out_dir": str(Path(out_dir).resolve()), "data_root": str(Path(data_root).resolve()),
             "panoptic": cfg.panoptic, "depth_poses": cfg.depth_poses, "detections": detections,
-            "render_scale": cfg.render_scale}
+            "render_scale": cfg.render_scale, "icp_max_depth_m": cfg.icp_max_depth_m}
 
 
 def fit_one(payload: dict) -> dict:
@@ -103,7 +109,8 @@ def fit_one(payload: dict) -> dict:
     fit = fit_panoptic_window(data, lambda: load_labels(frames, detections, data_root), payload["cfg"],
                               payload["panoptic"], depth_poses=payload["depth_poses"],
                               render_scale=payload["render_scale"], full_size=full, device=payload["device"],
-                              progress=lambda s, n, info: parallel.report(key, s, n, **info), name=f"window {wid}")
+                              progress=lambda s, n, info: parallel.report(key, s, n, **info), name=f"window {wid}",
+                              icp_max_depth_m=payload["icp_max_depth_m"])
     res, pan = fit.colour, fit.panoptic
     name = f"window_{wid:03d}"
     resume = Path(payload["resume_dir"]) if payload.get("resume_dir") else None
@@ -143,7 +150,7 @@ def fit_one(payload: dict) -> dict:
                "panoptic_params": pan.params if pan else 0,
                "panoptic_instances": bool(pan is not None and pan.cfg.instances), "n_slots": pan.n_slots if pan else 0,
                "id_window_width": pan.slot_window.width if pan and pan.slot_window else 0,
-               **fit.depth_info,
+               **fit.depth_info, "far_m": float(res.model.cfg.far_m),
                "checkpoint": f"window_{wid:03d}/checkpoint.pt"}
     result = {"poses": poses.to_dict("list"), "metrics": metrics, "renders": render_rows}
     if resume:
@@ -259,7 +266,8 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
                                 "panoptic_steps": 0, "panoptic_fit_s": 0.0, "panoptic_params": 0,
                                 "panoptic_instances": False, "n_slots": 0,
                                 "id_window_width": 0, "depth_poses": cfg.depth_poses, "odometry_scale": np.nan,
-                                "depth_pose_votes": 0, "depth_pose_note": ""})
+                                "depth_pose_votes": 0, "depth_pose_note": "", "icp_max_depth_m": np.nan,
+                                "far_m": np.nan})
             continue
         m = dict(o.result["metrics"])
         m["checkpoint_path"] = ctx.relpath("nerf", m.pop("checkpoint"))
