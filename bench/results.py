@@ -65,7 +65,8 @@ HEADS = {"rows": "Row family (`pag bench rows`)", "rows_holdout": "Held-out rows
          "count_rules": "Counting rules (`pag bench count_rules`)",
          "scale": "Scale (`pag bench scale`)", "encoding": "Encoding (`pag bench encoding`)",
          "render": "Occupancy skipping and early termination (`pag bench render`)",
-         "dask": "Dask workers (`pag bench dask`)", "real_row": "Real-size row (`pag bench real_row`)"}
+         "dask": "Dask workers (`pag bench dask`)", "real_row": "Real-size row (`pag bench real_row`)",
+         "real_rgbd": "Real RGB-D recording (`pag bench real_rgbd`)"}
 """Section name -> the start of its first line (a section of an existing block is found again by it)."""
 
 
@@ -197,6 +198,20 @@ def real_row_section(path: Path) -> str:
         markdown(df[quality].iloc[:1])])
 
 
+def real_rgbd_section(path: Path) -> str:
+    """`pag bench real_rgbd`: the recording's quality and pose figures, then the cost of each stage."""
+    df = pd.read_parquet(path)
+    figures = [c for c in ("psnr_db", "ate_odometry_m", "ate_refined_m", "depth_disagreement_odometry_mm",
+                           "depth_disagreement_refined_mm", "depth_disagreement_reference_mm", "icp_link_share",
+                           "far_m", "icp_max_depth_m", "samples_per_ray", "render_s_per_image", "count_pred")
+               if c in df]
+    return "\n".join([
+        f"{HEADS['real_rgbd']}, table written at commit `{table_commit(path)}` (`{df.seq.iloc[0]}`; val PSNR at "
+        "full size; ATE against the reference poses, a reconstruction good to about 1-2 cm; depth disagreement: "
+        "mean point-to-plane distance between the depth of frames 4 apart placed with each set of poses, mm):",
+        "", markdown(df[figures].iloc[:1]), "", markdown(df[["stage", "seconds", "peak_rss_mb"]])])
+
+
 def encoding_section(path: Path) -> str:
     df = pd.read_parquet(path)
     fused = df[df.variant == "permuto_fused"]
@@ -276,6 +291,7 @@ def build(data_root: Path, bench_dir: Path, seq: str, extra: list[str] = (), pre
     add("count_rules", bench_dir / "count_rules.parquet", count_rules_section)
     add("scale", bench_dir / "scale.parquet", scale_section)
     add("real_row", bench_dir / "real_row.parquet", real_row_section)
+    add("real_rgbd", bench_dir / "real_rgbd.parquet", real_rgbd_section)
     add("default_row", data_root / "processed" / seq / "evaluation.parquet",
         lambda _: default_row_section(data_root, seq), named_when_missing=False)
     for name in ["encoding", "render", "dask", *extra]:

@@ -62,7 +62,7 @@ def test_the_colour_phase_starts_from_the_depth_corrected_poses(window_and_label
     data, _ = window_and_labels
     calls = []
 
-    def corrected(mode, depths, intrinsics, c2w):
+    def corrected(mode, depths, intrinsics, c2w, max_depth_m=0.0):
         calls.append(mode)
         out = c2w.copy()
         out[:, 0, 3] += 0.01
