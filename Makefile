@@ -1,5 +1,6 @@
 # make all [SEQ=name]   set up if needed, generate the synthetic row (or use data/raw/SEQ), run every stage
-# make test             set up if needed and run the test suite
+# make test             set up if needed and run the test suite (all but the tests marked slow)
+# make test-slow        the tests marked slow (whole rows, campaigns, killed runs, the real recording)
 # make <stage> SEQ=...  run one stage (stage names come from pipeline/dag.py)
 # make campaign SEQS="a b c" [ARGS="--scheduler ADDRESS --config FILE"]   every row, windows on one cluster
 SEQ ?= synth_row
@@ -11,13 +12,16 @@ STAMP := $(VENV)/.installed
 # The stage list is declared once, in pipeline/dag.py (importable without the venv).
 STAGES := $(shell python3 -c 'from pipeline.dag import STAGE_ORDER; print(*STAGE_ORDER)' 2>/dev/null)
 
-.PHONY: all test setup bench clean $(sort $(STAGES) evaluate)
+.PHONY: all test test-slow setup bench clean $(sort $(STAGES) evaluate)
 
 all: $(STAMP)
 	$(PAG) all --seq $(SEQ) $(ARGS)
 
 test: $(STAMP)
-	$(PY) -m pytest -q $(ARGS)
+	$(PY) -m pytest -q -m "not slow" $(ARGS)
+
+test-slow: $(STAMP)
+	$(PY) -m pytest -q -m slow $(ARGS)
 
 setup: $(STAMP)
 

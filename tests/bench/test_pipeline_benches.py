@@ -65,6 +65,7 @@ def test_summary_rows_take_the_worst_in_the_right_direction():
     assert np.isnan(out.loc["worst", "pq"])
 
 
+@pytest.mark.slow  # about 30 s: the quick row family through the pipeline
 def test_rows_quick_runs_the_pipeline_and_is_checkpointed(tmp_path, capsys):
     data, out = tmp_path / "data", tmp_path / "bench"
     assert rows.main(["--quick", "--rows", "dense", "--data-root", str(data), "--out", str(out)]) == 0

@@ -9,11 +9,14 @@ from pathlib import Path
 
 import pandas as pd
 import pyarrow.parquet as pq
+import pytest
 import yaml
 
 from campaign_fixture import SEQS, campaign_args
 from pipeline import cli, parallel
 from pipeline.classes import DEFAULT_CLASSES
+
+pytestmark = pytest.mark.slow  # about 35 s: three rows fitted for the shared campaign fixture: `make test-slow`
 
 
 def camp(root: Path) -> Path:
@@ -65,6 +68,7 @@ def test_rows_summary_matches_each_rows_tables(local_campaign):
 READER = r"""
 import json, sys
 import duckdb, pandas as pd, polars as pl, pyarrow.dataset as ds, pyarrow.parquet as pq
+
 
 out = {}
 fruits = ds.dataset("fruits", format="parquet", partitioning="hive")

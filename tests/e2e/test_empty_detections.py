@@ -1,10 +1,13 @@
 """Bad input through the whole DAG: a row whose detector found nothing in any frame still gets renders,
 a report and an explicit zero count."""
 import pandas as pd
+import pytest
 
 from pipeline import cli
 
 from test_pipeline_e2e import TINY
+
+pytestmark = pytest.mark.slow  # about 20 s: a second whole-DAG run: `make test-slow`
 
 
 def test_bad_input_empty_detections_for_the_whole_row(tmp_path, capsys):

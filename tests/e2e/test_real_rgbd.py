@@ -7,8 +7,12 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pandas as pd
+import pytest
 
 from bench import real_rgbd
+
+pytestmark = pytest.mark.slow  # about 50 s: a 640x480 fit: `make test-slow`
+
 
 ROW = Path(__file__).resolve().parents[1] / "data" / "sun3d_office_12f"
 SHORT = ("nerf_fit.model.steps=100", "nerf_fit.panoptic.stuff_only_steps=10", "nerf_fit.workers=1",

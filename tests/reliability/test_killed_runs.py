@@ -23,6 +23,8 @@ import torch
 
 from pipeline.io import LEFTOVER
 
+pytestmark = pytest.mark.slow  # about 60 s: a row run once whole and three times killed: `make test-slow`
+
 REPO = Path(__file__).resolve().parents[2]
 SEQ = "synth_kill"
 TINY = ["--set", "synth.n_frames=12", "--set", "synth.width=64", "--set", "synth.height=40",
