@@ -136,35 +136,37 @@ def init_occupancy(model: NerfModel, depths: Tensor, c2w: Tensor, k: Tensor, str
     ray of every `carve_stride`-th pixel is empty. A real sensor has no depth at the image border, on glare and
     beyond its range; without the carving those rays fill the room in front of every surface, and rays spend
     their samples there."""
-    n, h, w = depths.shape
-    dev = depths.device
-    surf, free_o, free_d, seen_o, seen_d, seen_t = [], [], [], [], [], []
-    for i in range(n):
-        for px, keep in ((stride, "surface"), (carve_stride, "seen")):
-            v, u = torch.meshgrid(torch.arange(0, h, px, device=dev) + 0.5, torch.arange(0, w, px, device=dev) + 0.5,
-                                  indexing="ij")
-            u, v = u.reshape(-1), v.reshape(-1)
-            dd = depths[i, v.long(), u.long()]
-            o, d = pixel_rays(k[i].expand(u.shape[0], 4), c2w[i].expand(u.shape[0], 4, 4), u, v)
-            ok = (dd > model.cfg.near_m) & (dd < model.cfg.far_m)
-            if keep == "surface":
-                surf.append(o[ok] + d[ok] * dd[ok, None])
-                free_o.append(o[~ok])
-                free_d.append(d[~ok])
-            else:
-                seen_o.append(o[ok])
-                seen_d.append(d[ok])
-                seen_t.append(dd[ok])
+    near, far = model.cfg.near_m, model.cfg.far_m
+    surf, free_o, free_d = [], [], []
+    for o, d, dd in _depth_rays(depths, c2w, k, stride):
+        ok = (dd > near) & (dd < far)
+        surf.append(o[ok] + d[ok] * dd[ok, None])
+        free_o.append(o[~ok])
+        free_d.append(d[~ok])
     fo, fd = torch.cat(free_o), torch.cat(free_d)
     free = seen_empty = None
-    if len(fo):
-        free = (fo, fd, torch.linspace(model.cfg.near_m, model.cfg.far_m, 64, device=dev))
-        so, sd, st = torch.cat(seen_o), torch.cat(seen_d), torch.cat(seen_t)
-        cell = float(model.grid.cell.max())
-        end = (CARVE_SHARE * st - cell).clamp_min(model.cfg.near_m)                       # [R]
-        frac = torch.linspace(0, 1, carve_samples, device=dev)
-        seen_empty = model.grid.cells_along(so, sd, model.cfg.near_m + (end - model.cfg.near_m)[:, None] * frac)
+    if len(fo):  # carve only where some ray has no depth: with depth everywhere nothing is added to carve from
+        free = (fo, fd, torch.linspace(near, far, 64, device=depths.device))
+        seen = [(o[ok], d[ok], dd[ok]) for o, d, dd in _depth_rays(depths, c2w, k, carve_stride)
+                for ok in [(dd > near) & (dd < far)]]
+        so, sd, st = (torch.cat(parts) for parts in zip(*seen))
+        end = (CARVE_SHARE * st - float(model.grid.cell.max())).clamp_min(near)                   # [R]
+        frac = torch.linspace(0, 1, carve_samples, device=depths.device)
+        seen_empty = model.grid.cells_along(so, sd, near + (end - near)[:, None] * frac)
     model.grid.init_from_points(torch.cat(surf), free, dilate=model.cfg.occupancy_dilate, seen_empty=seen_empty)
+
+
+def _depth_rays(depths: Tensor, c2w: Tensor, k: Tensor, stride: int):
+    """Per frame of depths [N, H, W] (with its pose and intrinsics): the rays of every `stride`-th pixel,
+    origins and directions [R, 3], and the sensor depth [R] along them (one frame at a time, so a window's
+    rays are never all in memory)."""
+    n, h, w = depths.shape
+    v, u = torch.meshgrid(torch.arange(0, h, stride, device=depths.device) + 0.5,
+                          torch.arange(0, w, stride, device=depths.device) + 0.5, indexing="ij")
+    u, v = u.reshape(-1), v.reshape(-1)
+    for i in range(n):
+        o, d = pixel_rays(k[i].expand(u.shape[0], 4), c2w[i].expand(u.shape[0], 4, 4), u, v)
+        yield o, d, depths[i, v.long(), u.long()]
 
 
 CARVE_SHARE = 0.9

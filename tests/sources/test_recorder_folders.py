@@ -11,20 +11,11 @@ import pytest
 import yaml
 
 from raw_helpers import copy_raw
-from pipeline.stage import StageContext
+from test_detector_formats import run_ingest
 from sources.common import IngestError, read_stamp
-from stages import ingest, synth
+from stages import synth
 
 STAMPED_FOLDERS = ("rgb", "depth", "seg", "pred_seg/semantic", "pred_seg/instance", "gt/semantic", "gt/instance")
-
-
-def run_ingest(raw: Path, tmp: Path, **cfg):
-    staging = tmp / f"stage_{len(list(tmp.glob('stage_*')))}"
-    staging.mkdir()
-    ctx = StageContext(stage="ingest", seq="t", data_root=raw.parents[1], staging={"images": staging},
-                       show_progress=False)
-    out = ingest.run({"raw": raw}, ingest.Config(**cfg), ctx)
-    return out, ctx, staging
 
 
 @pytest.fixture
