@@ -39,6 +39,7 @@ from pipeline.catalog import dataset
 from pipeline.io import read_table
 from pipeline.provenance import stage_costs
 from pipeline.runner import Runner
+from sources.common import StampUnit, stamp_from_name
 
 DEFAULT_ROW = Path(__file__).resolve().parents[2] / "shared" / "real" / "sun3d_office"
 """The shared real row (../shared/real/sun3d_office next to the checkout)."""
@@ -53,16 +54,18 @@ FIGURES = {
 """Figures read from the row's evaluation table (column -> (scope, metric) candidates)."""
 
 
-def excerpt(row: Path, dest: Path, n_frames: int) -> Path:
-    """Copy the first `n_frames` frames of the recorded row folder `row` (by stamp order of rgb/) into `dest`:
-    their colour, depth and detector images, the odometry rows up to one row past the last frame, params.yaml,
-    the detector scores and gt/ tables of those stamps, and README.txt. Returns dest."""
+def excerpt(row: Path, dest: Path, n_frames: int, stamp_unit: StampUnit = "auto") -> Path:
+    """Copy the first `n_frames` frames of the recorded row folder `row` (by the stamps of rgb/'s names, read
+    as ingest reads them) into `dest`: their colour, depth and detector images, the odometry rows up to one
+    row past the last frame, params.yaml, the detector scores, the gt/ tables' rows of those frames and
+    README.txt. Returns dest."""
     row, dest = Path(row), Path(dest)
-    colour = sorted(p for p in (row / "rgb").iterdir() if p.suffix.lower() in (".png", ".jpg", ".jpeg"))
+    colour = sorted((stamp_from_name(p.stem, stamp_unit), p) for p in (row / "rgb").iterdir()
+                    if p.suffix.lower() in (".png", ".jpg", ".jpeg"))
     if len(colour) < n_frames:
         raise ValueError(f"{row / 'rgb'} has {len(colour)} colour frames, fewer than the {n_frames} asked for")
-    keep = colour[:n_frames]
-    stems = {p.stem for p in keep}
+    stems = {p.stem for _, p in colour[:n_frames]}
+    last_ns = colour[n_frames - 1][0]
     for sub in ("rgb", "depth", "pred_seg/semantic", "pred_seg/instance", "seg"):
         if not (row / sub).is_dir():
             continue
@@ -74,10 +77,10 @@ def excerpt(row: Path, dest: Path, n_frames: int) -> Path:
         if (row / name).is_file():
             shutil.copyfile(row / name, dest / name)
     odom = pd.read_csv(row / "odometry.csv", dtype={"timestamp": str})
-    last = max(stems, key=float) if all(_is_decimal(s) for s in stems) else max(stems)
-    order = odom.timestamp.astype(float).to_numpy() if _is_decimal(last) else odom.timestamp.to_numpy()
-    cut = int(np.searchsorted(np.sort(order), float(last) if _is_decimal(last) else last, side="right")) + 1
-    odom.iloc[:cut].to_csv(dest / "odometry.csv", index=False)
+    odom_ns = np.array([stamp_from_name(t.strip(), stamp_unit) for t in odom.timestamp], np.int64)
+    odom = odom.iloc[np.argsort(odom_ns, kind="stable")]
+    odom.iloc[:int(np.searchsorted(np.sort(odom_ns), last_ns, side="right")) + 1].to_csv(dest / "odometry.csv",
+                                                                                          index=False)
     scores = row / "pred_seg" / "scores.csv"
     if scores.is_file():
         shutil.copyfile(scores, dest / "pred_seg" / "scores.csv")
@@ -89,14 +92,6 @@ def excerpt(row: Path, dest: Path, n_frames: int) -> Path:
                 t = t[t.frame_id < n_frames]
             t.to_parquet(dest / "gt" / p.name, index=False)
     return dest
-
-
-def _is_decimal(text: str) -> bool:
-    try:
-        float(text)
-        return True
-    except ValueError:
-        return False
 
 
 def place_row(row: Path, data_root: Path, n_frames: int = 0) -> str:
