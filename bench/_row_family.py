@@ -83,14 +83,33 @@ HOLDOUT: tuple[FamilyRow, ...] = (
 row, fixed before they were first run. A mechanism tuned to the family's rows shows as a gap between the two
 tables; no setting is ever chosen on these rows."""
 
+UNSEEN: tuple[FamilyRow, ...] = (
+    FamilyRow("unseen_light", "light fruiting, a good detector, mild drift",
+              seed=301, fruits_per_m=14, det_miss_rate=0.08, det_false_pos_rate=0.25, det_merge_rate=0.04,
+              odom_drift_m_per_m=0.025, odom_yaw_drift_deg_per_m=1.2, n_frames=140),
+    FamilyRow("unseen_dense", "dense, a typical-to-noisy detector, strong drift",
+              seed=302, fruits_per_m=27, det_miss_rate=0.22, det_false_pos_rate=0.4, det_merge_rate=0.09,
+              odom_drift_m_per_m=0.045, odom_yaw_drift_deg_per_m=2.8, n_frames=220),
+    FamilyRow("unseen_crowded", "crowded, many misses and merges, good odometry",
+              seed=303, fruits_per_m=38, det_miss_rate=0.30, det_false_pos_rate=0.55, det_merge_rate=0.13,
+              odom_drift_m_per_m=0.015, odom_yaw_drift_deg_per_m=0.8, n_frames=170),
+    FamilyRow("unseen_weak_drift", "a weak detector and strong drift on a medium row",
+              seed=304, fruits_per_m=18, det_miss_rate=0.40, det_false_pos_rate=0.7, det_merge_rate=0.06,
+              odom_drift_m_per_m=0.055, odom_yaw_drift_deg_per_m=3.8, n_frames=150),
+)
+"""Unseen rows (`pag bench rows --unseen`), defined before the fusion redesign (issue 48) began: seeds and
+knob values in no family or held-out row. Their outputs are read once, when a design is final, and reported
+as they come; nothing is tuned on them. Rows beyond the family's 8-40 fruits/m or 0.35 miss rate (0.40,
+0.7 false positives per frame) test that mechanisms extrapolate."""
+
 QUICK: tuple[str, ...] = ("typical", "dense", "poor_detector", "bad_odometry")
 """Rows of the `--quick` smoke run (with tiny images, few frames and few steps)."""
 
 
 def family_row(name: str) -> FamilyRow:
-    """The family or held-out row called `name`."""
-    for r in (*FAMILY, *HOLDOUT):
+    """The family, held-out or unseen row called `name`."""
+    for r in (*FAMILY, *HOLDOUT, *UNSEEN):
         if r.name == name:
             return r
     raise ValueError(f"no row {name!r} in the family; rows: {[r.name for r in FAMILY]}, held out: "
-                     f"{[r.name for r in HOLDOUT]}")
+                     f"{[r.name for r in HOLDOUT]}, unseen: {[r.name for r in UNSEEN]}")

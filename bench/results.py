@@ -61,6 +61,7 @@ ROW_METRICS = [  # (metric, scope, label, format)
 
 
 HEADS = {"rows": "Row family (`pag bench rows`)", "rows_holdout": "Held-out rows (`pag bench rows --holdout`)",
+         "rows_unseen": "Unseen rows (`pag bench rows --unseen`)",
          "rows_seeds": "Row family on other fit seeds (`pag bench rows --fit-seed N`)",
          "count_rules": "Counting rules (`pag bench count_rules`)",
          "scale": "Scale (`pag bench scale`)", "encoding": "Encoding (`pag bench encoding`)",
@@ -105,9 +106,10 @@ def default_row_section(data_root: Path, seq: str) -> str:
 def family_section(path: Path, name: str = "rows") -> str:
     """`pag bench rows` (name 'rows': the family; 'rows_holdout': the held-out rows): one line per row, then
     the mean and the worst of each column."""
-    from bench._row_family import FAMILY, HOLDOUT
+    from bench._row_family import FAMILY, HOLDOUT, UNSEEN
 
-    members, what = (HOLDOUT, "held-out") if name == "rows_holdout" else (FAMILY, "family's")
+    members, what = {"rows_holdout": (HOLDOUT, "held-out"), "rows_unseen": (UNSEEN, "unseen")}.get(
+        name, (FAMILY, "family's"))
     df = pd.read_parquet(path)
     num = [c for c in df.columns if pd.api.types.is_numeric_dtype(df[c]) and c != "row"]
     show = df[["row"] + num] if "row" in df.columns else df[num]
@@ -284,6 +286,7 @@ def build(data_root: Path, bench_dir: Path, seq: str, extra: list[str] = (), pre
 
     add("rows", bench_dir / "rows.parquet", family_section)
     add("rows_holdout", bench_dir / "rows_holdout.parquet", lambda p: family_section(p, "rows_holdout"))
+    add("rows_unseen", bench_dir / "rows_unseen.parquet", lambda p: family_section(p, "rows_unseen"))
     seed_tables = sorted(bench_dir.glob("rows_seed*.parquet"))
     if seed_tables or "rows_seeds" in kept:  # optional: never listed as not measured
         add("rows_seeds", seed_tables[0] if seed_tables else bench_dir / "rows_seed1.parquet",
@@ -297,7 +300,7 @@ def build(data_root: Path, bench_dir: Path, seq: str, extra: list[str] = (), pre
     for name in ["encoding", "render", "dask", *extra]:
         add(name, bench_dir / f"{name}.parquet", SECTIONS.get(name, lambda p, n=name: generic_section(n, p)))
     if missing:
-        commands = {"rows_holdout": "rows --holdout"}
+        commands = {"rows_holdout": "rows --holdout", "rows_unseen": "rows --unseen"}
         parts.append("Not measured in this checkout: "
                      + ", ".join(f"`pag bench {commands.get(m, m)}`" for m in missing) + ".")
     return "\n\n".join(parts)

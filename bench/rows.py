@@ -1,7 +1,7 @@
 """The whole pipeline on a fixed family of synthetic rows (bench/_row_family.py): count, identity, panoptic
 and size errors, PSNR and cost per row, with the mean and the worst row.
 
-    pag bench rows [--rows NAME,NAME] [--quick | --holdout] [--fit-seed N] [--force] [--data-root data]
+    pag bench rows [--rows NAME,NAME] [--quick | --holdout | --unseen] [--fit-seed N] [--force] [--data-root data]
                    [--out data/bench]
 
 Each row is the sequence synth_rows_<name> under --data-root (the normal pipeline outputs, report included).
@@ -11,6 +11,8 @@ every finished row each time. `--quick` runs 4 rows with tiny images and few ste
 harness; its numbers mean nothing) into rows_quick.* and sequences synth_rowsq_<name>.
 `--holdout` runs the held-out rows (bench/_row_family.py HOLDOUT: seeds and knob values in no family row)
 into rows_holdout.*, the check that what holds on the family is not tuned to it.
+`--unseen` runs the unseen rows (UNSEEN: defined before the fusion redesign, read once when a design is final)
+into rows_unseen.*.
 `--fit-seed N` (N >= 1) fits every window with nerf_fit.seed = N (the same recording, other random rays and
 initial weights) into rows_seed<N>.* (rows_holdout_seed<N>.* with --holdout) and sequences
 synth_rows_<name>_seed<N>: the spread between seeds is the fit-to-fit variance any change of the model has
@@ -29,7 +31,7 @@ import pandas as pd
 
 from bench._common import write_parquet
 from bench._pipeline import QUALITY, TINY, quality, run_variant, settings
-from bench._row_family import FAMILY, HOLDOUT, QUICK, family_row
+from bench._row_family import FAMILY, HOLDOUT, QUICK, UNSEEN, family_row
 from pipeline.io import atomic_write_bytes
 
 ID_FAILURES = {f"id_fail_{k}": (("row", f"id_fail_{k}"),) for k in ("unlabelled", "shared", "split")}
@@ -130,7 +132,7 @@ def run(names: list[str], quick: bool = False, force: bool = False, data_root: P
         atomic_write_bytes(done, json.dumps(rec, indent=1).encode())
         print(f"[bench rows] {name}: {rec['minutes']:.1f} min, count error {rec['count_error_rel']:+.3f}, "
               f"PQ {rec['pq']:.3f}", file=sys.stderr)
-    order = [r.name for r in (*FAMILY, *HOLDOUT)]
+    order = [r.name for r in (*FAMILY, *HOLDOUT, *UNSEEN)]
     recs = [json.loads(p.read_text()) for p in done_dir.glob("*.json")]
     recs.sort(key=lambda r: order.index(r["row"]) if r["row"] in order else len(order))
     df = summarise(pd.DataFrame(recs))
@@ -146,25 +148,27 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--quick", action="store_true", help=f"the 4-row smoke run {list(QUICK)} with tiny settings")
     p.add_argument("--holdout", action="store_true",
                    help=f"the held-out rows {[r.name for r in HOLDOUT]} (in no family row's seed or knobs)")
+    p.add_argument("--unseen", action="store_true",
+                   help=f"the unseen rows {[r.name for r in UNSEEN]} (read once, when a design is final)")
     p.add_argument("--fit-seed", type=int, default=0,
                    help="nerf_fit.seed of every window (>= 1; own tables rows_seed<N>.*): the fit-to-fit spread")
     p.add_argument("--force", action="store_true", help="rerun rows (and their stages) that are done")
     p.add_argument("--data-root", type=Path, default=Path("data"))
     p.add_argument("--out", type=Path, default=Path("data/bench"))
     a = p.parse_args(argv)
-    if a.quick and a.holdout:
-        p.error("--quick and --holdout exclude each other")
-    members = [r.name for r in (HOLDOUT if a.holdout else FAMILY)]
+    if a.quick + a.holdout + a.unseen > 1:
+        p.error("--quick, --holdout and --unseen exclude each other")
+    group = "holdout" if a.holdout else "unseen" if a.unseen else "family"
+    members = [r.name for r in {"holdout": HOLDOUT, "unseen": UNSEEN, "family": FAMILY}[group]]
     names = [n.strip() for n in a.rows.split(",") if n.strip()] or (list(QUICK) if a.quick else members)
     for n in names:
         family_row(n)  # unknown names fail before anything runs
-    allowed = set(members)
-    if not a.quick and set(names) - allowed:
-        p.error(f"{sorted(set(names) - allowed)} are {'family' if a.holdout else 'held-out'} rows: "
-                f"{'drop' if a.holdout else 'add'} --holdout (the two tables are kept apart)")
+    if not a.quick and set(names) - set(members):
+        p.error(f"{sorted(set(names) - set(members))} are not {group} rows: pick the rows of one group "
+                f"(--holdout, --unseen or neither; the tables are kept apart)")
     if a.fit_seed < 0:
         p.error(f"--fit-seed must be >= 1 (0 = the seed of the plain run), got {a.fit_seed}")
-    tag = ("rows_holdout" if a.holdout else "rows_quick" if a.quick else "rows") + (
+    tag = ("rows_quick" if a.quick else "rows" if group == "family" else f"rows_{group}") + (
         f"_seed{a.fit_seed}" if a.fit_seed else "")
     df = run(names, a.quick, a.force, a.data_root, a.out, tag, a.fit_seed)
     cols = ["row", "count_error_rel", "recall", "precision", "row_id_consistency", "pq", "pq_detector", "psnr_db",

@@ -7,7 +7,7 @@ import pandas as pd
 import pytest
 
 from bench import _pipeline, count_rules, rows, scale
-from bench._row_family import FAMILY, HOLDOUT, QUICK, family_row
+from bench._row_family import FAMILY, HOLDOUT, QUICK, UNSEEN, family_row
 
 
 def test_family_spans_the_required_knobs():
@@ -33,6 +33,18 @@ def test_holdout_rows_share_no_seed_or_knob_set_with_the_family():
         assert 8 <= r.fruits_per_m <= 40 and r.n_frames % 40 == 0 and family_row(r.name) is r
     for argv in (["--quick", "--holdout"], ["--rows", HOLDOUT[0].name], ["--holdout", "--rows", FAMILY[0].name],
                  ["--fit-seed", "-1"]):
+        with pytest.raises(SystemExit):  # before anything runs
+            rows.main(argv)
+
+
+def test_unseen_rows_share_no_seed_or_knob_value_with_any_earlier_row():
+    earlier = (*FAMILY, *HOLDOUT)
+    assert len(UNSEEN) >= 4 and not {r.seed for r in UNSEEN} & {r.seed for r in earlier}
+    for knob in ("fruits_per_m", "det_miss_rate", "det_false_pos_rate", "det_merge_rate", "odom_drift_m_per_m",
+                 "odom_yaw_drift_deg_per_m", "n_frames"):
+        assert not {getattr(r, knob) for r in UNSEEN} & {getattr(r, knob) for r in earlier}, knob
+    assert all(family_row(r.name) is r and r.n_labelled >= 3 for r in UNSEEN)
+    for argv in (["--unseen", "--holdout"], ["--rows", UNSEEN[0].name], ["--unseen", "--rows", HOLDOUT[0].name]):
         with pytest.raises(SystemExit):  # before anything runs
             rows.main(argv)
 
