@@ -7,6 +7,9 @@ processes reaches the user's stderr.
 A task that raises does not stop the others: its exception is returned in its slot.
 Inside a `shared_cluster` block (a campaign), every map_tasks call of the process, from any thread,
 submits to one cluster opened on first use, so several rows' windows share its workers.
+On a local cluster of its own, map_tasks can let the last tasks take the cores that finished tasks free
+(`idle_threads`): each running task raises its torch threads to its share of the idle task slots the next
+time it reports progress, so the last window of a row does not fit on one core while the others sit idle.
 """
 from __future__ import annotations
 
@@ -31,9 +34,27 @@ class TaskOutcome:
     seconds: float = 0.0
     worker: str = ""
     """name of the dask worker that ran the task ('' if unknown, e.g. it failed)."""
+    threads: int = 0
+    """the most torch threads the task used (more than it started with where it took idle cores; 0 = unknown)."""
 
 
 _QUEUE_NAME: str | None = None
+
+
+@dataclass
+class _IdleShare:
+    """Inside a task started with idle_threads: where the caller publishes the idle slots, and this task's
+    thread count so far."""
+
+    variable: str
+    base_threads: int
+    threads: int
+    checked_at: float = 0.0
+
+
+_IDLE: _IdleShare | None = None
+IDLE_CHECK_S = 2.0
+"""Seconds between two looks of a running task at the idle slots (each look is a round trip to the scheduler)."""
 
 
 def report(key: str, done: int, total: int, **info: Any) -> None:
@@ -47,6 +68,28 @@ def report(key: str, done: int, total: int, **info: Any) -> None:
         Queue(name, client=get_client()).put((key, done, total, info))
     except Exception:  # progress must never break a fit
         pass
+    _take_idle_threads()
+
+
+def _take_idle_threads() -> None:
+    """Inside a task started with idle_threads: raise torch's threads to base x (1 + the idle slots per running
+    task the caller last published); never lowered, since no new task comes to this cluster."""
+    share = _IDLE
+    if share is None or time.monotonic() - share.checked_at < IDLE_CHECK_S:
+        return
+    share.checked_at = time.monotonic()
+    try:
+        from distributed import Variable, get_client
+
+        extra = int(Variable(share.variable, client=get_client()).get(timeout=1))
+    except Exception:  # a missed look only keeps the threads as they are
+        return
+    want = share.base_threads * (1 + max(0, extra))
+    if want > share.threads:
+        import torch
+
+        torch.set_num_threads(want)
+        share.threads = want
 
 
 def keep_freed_memory() -> bool:
@@ -86,18 +129,31 @@ def _worker_threads() -> int:
     return max(1, (os.cpu_count() or 1) // max(1, slots))
 
 
-def _run_task(fn: Callable, payload: Any, queue_name: str, threads: int) -> tuple[Any, float, str]:
-    global _QUEUE_NAME
+def _run_task(fn: Callable, payload: Any, queue_name: str, threads: int, idle_variable: str | None = None
+              ) -> tuple[Any, float, str, int]:
+    """fn(payload) with `threads` torch threads (0 = the worker's share of its machine); returns the result, its
+    seconds, the worker's name and the most threads the task used."""
+    global _QUEUE_NAME, _IDLE
     import torch
 
     _QUEUE_NAME = queue_name
     keep_freed_memory()  # also on workers of a cluster this process did not start (--scheduler)
-    torch.set_num_threads(threads if threads > 0 else _worker_threads())
+    base = threads if threads > 0 else _worker_threads()
+    torch.set_num_threads(base)
+    _IDLE = _IdleShare(idle_variable, base, base, time.monotonic()) if idle_variable else None
     t0 = time.perf_counter()
     try:
-        return fn(payload), time.perf_counter() - t0, worker_name()
+        return fn(payload), time.perf_counter() - t0, worker_name(), _IDLE.threads if _IDLE else base
     finally:
-        _QUEUE_NAME = None
+        _QUEUE_NAME, _IDLE = None, None
+
+
+def idle_slots(n_workers: int, unfinished: int) -> int:
+    """Idle task slots each running task may take: none while the queue still fills every worker, then the
+    free workers shared equally (rounded down) among the tasks left. Example: 4 workers, 2 tasks left -> 1."""
+    if unfinished <= 0 or unfinished >= n_workers:
+        return 0
+    return (n_workers - unfinished) // unfinished
 
 
 def default_workers(n_tasks: int) -> int:
@@ -189,20 +245,29 @@ def task_threads(threads_per_worker: int, n_workers: int) -> int:
 
 def map_tasks(fn: Callable[[Any], Any], payloads: dict[str, Any], n_workers: int = 0, threads_per_worker: int = 0,
               scheduler: str | None = None, show_progress: bool = True, desc: str = "task",
-              label: str | None = None, progress_interval_s: float = 2.0) -> dict[str, TaskOutcome]:
+              label: str | None = None, progress_interval_s: float = 2.0, idle_threads: bool = False
+              ) -> dict[str, TaskOutcome]:
     """Run fn(payload) for every payload; returns outcomes by key. One task per worker at a time.
-    Progress of task k is shown as f"{label or desc} {k}"."""
-    from distributed import Queue, as_completed
+    Progress of task k is shown as f"{label or desc} {k}".
+    idle_threads: on a local cluster this call starts (no scheduler, no shared cluster), once fewer tasks are
+    left than workers, the running tasks share the idle workers' threads (taken when they next report
+    progress). Their results then depend on when that happened, to floating-point noise."""
+    from distributed import Queue, Variable, as_completed
 
     n_workers = n_workers or default_workers(len(payloads))
     threads = task_threads(threads_per_worker, n_workers)
     outcomes: dict[str, TaskOutcome] = {}
     queue_name = f"pag-progress-{uuid.uuid4().hex[:8]}"
     opened = contextlib.nullcontext(_shared_client()) if _SHARED is not None else client_for(scheduler, n_workers, threads)
+    share = idle_threads and scheduler is None and _SHARED is None and n_workers > 1
+    idle_name = f"pag-idle-{uuid.uuid4().hex[:8]}" if share else None
     with opened as client:
         queue = Queue(queue_name, client=client)
-        futures = {client.submit(_run_task, fn, p, queue_name, threads, key=f"{desc}-{k}-{uuid.uuid4().hex[:6]}",
-                                 pure=False): k for k, p in payloads.items()}
+        idle = Variable(idle_name, client=client) if share else None
+        if idle is not None:
+            idle.set(0)
+        futures = {client.submit(_run_task, fn, p, queue_name, threads, idle_name,
+                                 key=f"{desc}-{k}-{uuid.uuid4().hex[:6]}", pure=False): k for k, p in payloads.items()}
         bars = {k: progress.Tracker(f"{label or desc} {k}", None, enabled=show_progress, interval_s=progress_interval_s,
                                     position=i) for i, k in enumerate(payloads)}
 
@@ -224,8 +289,8 @@ def map_tasks(fn: Callable[[Any], Any], payloads: dict[str, Any], n_workers: int
             for fut in finished:
                 key = futures[fut]
                 try:
-                    result, seconds, worker = fut.result()
-                    outcomes[key] = TaskOutcome(key, result=result, seconds=seconds, worker=worker)
+                    result, seconds, worker, used = fut.result()
+                    outcomes[key] = TaskOutcome(key, result=result, seconds=seconds, worker=worker, threads=used)
                 except Exception as err:  # keep going: the other tasks finish
                     outcomes[key] = TaskOutcome(key, error=err)
                 drain()  # the task's last messages before its end line
@@ -234,6 +299,9 @@ def map_tasks(fn: Callable[[Any], Any], payloads: dict[str, Any], n_workers: int
                                  f"failed: {str(o.error).splitlines()[0] if str(o.error) else type(o.error).__name__}")
             if pending.is_empty() and len(outcomes) == len(futures):
                 break
+            if finished and idle is not None:
+                left = len(futures) - len(outcomes)
+                idle.set(idle_slots(n_workers, left))
             time.sleep(0.3)
         drain()
         for bar in bars.values():

@@ -3,9 +3,12 @@
 `PeakMemory` samples the resident set size (RSS) of this process and all its descendants (Dask workers,
 process pools) on a background thread and keeps the largest sum seen. Sampling misses peaks shorter than
 `interval_s`; the figure is a lower bound of the true peak, close to it for stages that run for seconds.
+`reset_own_peak` / `own_peak_mb` read one process's exact peak over a piece of work from the kernel's
+high-water mark (Linux), e.g. a Dask worker's over one window's fit.
 """
 from __future__ import annotations
 
+import math
 import os
 import threading
 from types import TracebackType
@@ -27,6 +30,29 @@ def tree_rss_bytes(pid: int | None = None) -> int:
         except psutil.Error:  # exited between listing and reading
             continue
     return total
+
+
+def reset_own_peak() -> bool:
+    """Reset this process's resident-memory high-water mark (Linux: /proc/self/clear_refs), so own_peak_mb
+    then reads the peak from now on. False where the system cannot (own_peak_mb is then nan)."""
+    try:
+        with open("/proc/self/clear_refs", "w") as fh:
+            fh.write("5")
+        return True
+    except OSError:
+        return False
+
+
+def own_peak_mb() -> float:
+    """This process's peak resident memory (MiB) since reset_own_peak (the kernel's VmHWM); nan where unknown."""
+    try:
+        with open("/proc/self/status") as fh:
+            for line in fh:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) / 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    return math.nan
 
 
 class PeakMemory:

@@ -12,7 +12,8 @@ SCHEMA = table_schema(
     col("error", pa.string(), "why the window failed ('' if ok), with the training step"),
     col("preset", pa.string(), "model preset (cpu, S, L)"),
     col("device", pa.string(), "torch device the window was fitted on"),
-    col("threads", pa.int32(), "torch CPU threads used by the window's worker"),
+    col("threads", pa.int32(), "torch CPU threads the window's fit ended with (more than it started with where it "
+        "took the cores of finished workers: nerf_fit.threads_per_worker = 0)"),
     col("n_train", pa.int32(), "training frames"),
     col("n_val", pa.int32(), "validation frames"),
     col("params", pa.int64(), "trainable parameters of the model (grids + decoders)"),
@@ -41,6 +42,9 @@ SCHEMA = table_schema(
         "derived from the window's depth); null with depth_poses 'off' or a failed window", nullable=True),
     col("far_m", pa.float64(), "metres: far plane of the window's field (nerf_fit.model.far_m, or derived from its "
         "depth); null for a failed window", nullable=True),
+    col("peak_rss_mb", pa.float64(), "peak resident memory of the worker process over the window's fit, "
+        "rendering and writing (the kernel's high-water mark; null where the system cannot reset it or the "
+        "window failed)", "MiB", nullable=True),
     col("worker", pa.string(), "name of the dask worker that fitted the window ('' if it failed)"),
     col("checkpoint_path", pa.string(), "model checkpoint (torch.save), relative to data/; '' if failed"),
 )

@@ -17,7 +17,7 @@ import schemas
 from nerf.config import NerfConfig, NerfOverrides, PanopticConfig, preset, set_fields
 from nerf.depth_poses import DepthPoses
 from nerf.geometry import pose_txyzq, rotation_angle_deg
-from pipeline import io, parallel, progress
+from pipeline import io, parallel, progress, resources
 from pipeline.stage import StageContext
 from rowmap import renders as render_files
 from rowmap.window_data import initial_poses, load_labels, load_window, window_detections
@@ -53,7 +53,8 @@ class Config:
     workers: int = 0
     """Dask workers for a local cluster (0 = one per core, at most one per window)."""
     threads_per_worker: int = 0
-    """torch threads per worker (0 = cores / workers)."""
+    """torch threads per worker (0 = cores / workers; then, once fewer windows are left than workers, the last
+    windows also take the idle workers' cores, and fits reproduce to floating-point noise, not bit for bit)."""
     max_windows: int = 0
     """fit at most this many windows (0 = all)."""
     seed: int = 0
@@ -98,6 +99,7 @@ def fit_one(payload: dict) -> dict:
 
     from nerf.fit import fit_panoptic_window
 
+    measured = resources.reset_own_peak()
     wid, out_dir, data_root = payload["window_id"], Path(payload["out_dir"]), Path(payload["data_root"])
     frames = pd.DataFrame(payload["frames"])
     key = str(wid)
@@ -146,6 +148,7 @@ def fit_one(payload: dict) -> dict:
                "samples_per_ray": res.samples_per_ray,
                "val_psnr": float(np.mean(list(res.val_psnr.values()))) if res.val_psnr else float("nan"),
                "train_psnr": res.train_psnr, "threads": torch.get_num_threads(),
+               "peak_rss_mb": resources.own_peak_mb() if measured else float("nan"),
                "panoptic_steps": pan.steps if pan else 0, "panoptic_fit_s": pan.fit_s if pan else 0.0,
                "panoptic_params": pan.params if pan else 0,
                "panoptic_instances": bool(pan is not None and pan.cfg.instances), "n_slots": pan.n_slots if pan else 0,
@@ -243,7 +246,8 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
         outcomes.update(parallel.map_tasks(fit_one, todo, n_workers=min(n_workers, len(todo)),
                                            threads_per_worker=threads, scheduler=ctx.scheduler,
                                            show_progress=ctx.show_progress, desc="window", label="nerf_fit window",
-                                           progress_interval_s=ctx.progress_interval_s))
+                                           progress_interval_s=ctx.progress_interval_s,
+                                           idle_threads=cfg.threads_per_worker == 0))
     pose_tables, metric_rows, render_rows = [], [], []
     for key in payloads:
         o = outcomes[key]
@@ -267,7 +271,7 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
                                 "panoptic_instances": False, "n_slots": 0,
                                 "id_window_width": 0, "depth_poses": cfg.depth_poses, "odometry_scale": np.nan,
                                 "depth_pose_votes": 0, "depth_pose_note": "", "icp_max_depth_m": np.nan,
-                                "far_m": np.nan})
+                                "far_m": np.nan, "peak_rss_mb": np.nan})
             continue
         m = dict(o.result["metrics"])
         m["checkpoint_path"] = ctx.relpath("nerf", m.pop("checkpoint"))

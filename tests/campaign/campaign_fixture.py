@@ -16,7 +16,7 @@ SETTINGS = {
                  "panoptic": {"steps": 100, "rays_per_frame": 64, "frames_per_step": 2}},
     "rows": {SEQS[0]: {"synth": {"seed": 1}}, SEQS[1]: {"synth": {"seed": 2}}},
 }
-TIMING_COLUMNS = {"fit_s", "render_s_per_image", "panoptic_fit_s", "worker"}
+TIMING_COLUMNS = {"fit_s", "render_s_per_image", "panoptic_fit_s", "worker", "peak_rss_mb"}
 """window_metrics columns that depend on where and how fast a window ran, not on what it computed."""
 TABLES = ("fruits", "counts", "window_metrics", "evaluation")
 

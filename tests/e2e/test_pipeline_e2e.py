@@ -36,6 +36,7 @@ def test_every_stage_ran_and_wrote_its_outputs(run_dir):
     assert w["window_id"].nunique() == 2
     metrics = pd.read_parquet(run_dir / "processed" / "synth_tiny" / "window_metrics.parquet")
     assert list(metrics["status"]) == ["ok", "ok"] and (metrics["val_psnr"] > 5).all()
+    assert (metrics["peak_rss_mb"] > 100).all()  # each worker's own peak over its window: torch alone is more
     poses = pd.read_parquet(run_dir / "processed" / "synth_tiny" / "window_poses.parquet")
     assert set(poses["window_id"]) == {0, 1}
     assert (run_dir / metrics["checkpoint_path"].iloc[0]).is_file()
@@ -74,3 +75,24 @@ def test_user_errors_are_one_paragraph_and_non_zero(run_dir, capsys):
     assert "sequence 'bup20_row3' not found" in err and "Traceback" not in err
     assert cli.main(["windows", "--seq", "synth_tiny", "--data-root", str(run_dir), "--set", "windows.half_widht=2"]) == 2
     assert "unknown key(s) ['half_widht']" in capsys.readouterr().err
+
+
+def test_step_profile_splits_the_steps_time_into_groups_and_rates_the_encoding(run_dir, tmp_path):
+    from bench import step_profile
+
+    assert step_profile.group_of("_FusedEncodeBackward") == "encoding"
+    assert step_profile.group_of("aten::_fused_adam_") == "optimiser"
+    assert step_profile.group_of("aten::mm") == "decoders" and step_profile.group_of("aten::zzz") == "other"
+    assert step_profile.main(["--seq", "synth_tiny", "--data-root", str(run_dir), "--out", str(tmp_path),
+                              "--steps", "4"]) == 0
+    df = pd.read_parquet(tmp_path / "step_profile.parquet")
+    groups = df[~df.group.str.startswith("op:")]
+    assert abs(groups.share.sum() - 1) < 1e-9 and (groups.seconds >= 0).all()
+    enc = groups.set_index("group").loc["encoding"]
+    assert enc.seconds > 0 and enc.fraction_of_limit > 0  # the kernel ran and the machine's floor was timed
+    assert (df.op.dropna().str.len() > 0).all() and len(df[df.group.str.startswith("op:")]) <= 15
+    assert step_profile.main(["--seq", "synth_tiny", "--data-root", str(run_dir), "--out", str(tmp_path),
+                              "--steps", "50", "--scaling", "1,2", "--rounds", "1"]) == 0
+    scaling = pd.read_parquet(tmp_path / "step_threads.parquet").set_index("threads")
+    assert list(scaling.index) == [1, 2] and (scaling.median_ms_per_step > 0).all()
+    assert scaling.loc[1, "speedup"] == 1.0

@@ -94,3 +94,39 @@ def test_map_tasks_from_several_threads_share_one_cluster(monkeypatch):
     assert all(o.error is None and o.result == o.worker for out in results.values() for o in out.values())
     assert workers <= {"0", "1"} and workers
     assert parallel.task_threads(0, 4) == max(1, (os.cpu_count() or 1) // 4)  # the block is closed
+
+
+def test_idle_slots_are_shared_only_once_the_queue_no_longer_fills_the_workers():
+    assert parallel.idle_slots(n_workers=2, unfinished=3) == 0  # queued tasks will take the free worker
+    assert parallel.idle_slots(n_workers=2, unfinished=2) == 0
+    assert parallel.idle_slots(n_workers=2, unfinished=1) == 1  # the last window takes the other core
+    assert parallel.idle_slots(n_workers=4, unfinished=2) == 1
+    assert parallel.idle_slots(n_workers=5, unfinished=2) == 1  # rounded down: never more threads than cores
+    assert parallel.idle_slots(n_workers=4, unfinished=0) == 0
+
+
+def short_or_long(kind):
+    """'short' returns at once; 'long' reports progress until it has more torch threads (or 12 s pass: six
+    looks at the idle slots)."""
+    import time
+
+    import torch
+
+    if kind == "short":
+        return torch.get_num_threads()
+    t0 = time.monotonic()
+    while torch.get_num_threads() < 2 and time.monotonic() - t0 < 12:
+        parallel.report("long", 0, 1)
+        time.sleep(0.2)
+    return torch.get_num_threads()
+
+
+@pytest.mark.slow
+def test_the_last_task_takes_the_threads_of_a_finished_worker():
+    out = parallel.map_tasks(short_or_long, {"short": "short", "long": "long"}, n_workers=2, threads_per_worker=1,
+                             show_progress=False, idle_threads=True)
+    assert out["short"].result == 1 and out["short"].threads == 1
+    assert out["long"].result == 2 and out["long"].threads == 2
+    kept = parallel.map_tasks(short_or_long, {"short": "short", "long": "long"}, n_workers=2, threads_per_worker=1,
+                              show_progress=False, idle_threads=False)
+    assert kept["long"].result == 1 and kept["long"].seconds > 11  # nobody gave it the idle core

@@ -7,7 +7,7 @@ import time
 import pytest
 
 from fake_stages import first, make, second
-from pipeline.resources import PeakMemory, tree_rss_bytes
+from pipeline.resources import PeakMemory, own_peak_mb, reset_own_peak, tree_rss_bytes
 from pipeline.runner import Runner
 
 CHILD = "import numpy as np, time; a = np.ones(300 * 2**20 // 8); time.sleep(1.5)"  # holds 300 MiB for 1.5 s
@@ -21,6 +21,27 @@ def test_peak_includes_a_child_process():
     with PeakMemory(interval_s=0.05) as idle:
         time.sleep(0.2)
     assert idle.peak_mb < m.peak_mb - 250  # the child is gone: nothing left over
+
+
+OWN_PEAK = """
+import numpy as np
+from pipeline.resources import own_peak_mb, reset_own_peak
+a = np.ones(400 * 2**20 // 8)  # 400 MiB touched
+del a
+assert reset_own_peak()
+before = own_peak_mb()
+b = np.ones(200 * 2**20 // 8)
+del b
+print(before, own_peak_mb())
+"""
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="the kernel's high-water mark")
+def test_own_peak_forgets_work_before_the_reset_and_sees_work_after():
+    out = subprocess.run([sys.executable, "-c", OWN_PEAK], check=True, capture_output=True, text=True)
+    before, after = map(float, out.stdout.split())
+    assert before < 300  # the 400 MiB array before the reset is forgotten
+    assert after - before > 180  # the 200 MiB one after it is seen, though freed again
 
 
 def test_bad_interval_is_refused():

@@ -40,7 +40,7 @@ TINY = ["--set", "synth.n_frames=12", "--set", "synth.width=64", "--set", "synth
         # the ICP pose correction (Open3D) rounds differently from one process to the next (its sums follow
         # memory layout), so two fits of a window agree only to ~1e-16 m; 'scale' is bit-reproducible
         "--set", "nerf_fit.depth_poses=scale"]
-TIMING_COLUMNS = {"fit_s", "render_s_per_image", "panoptic_fit_s"}
+TIMING_COLUMNS = {"fit_s", "render_s_per_image", "panoptic_fit_s", "peak_rss_mb"}
 RUN_COLUMNS = {"worker"}  # which Dask worker ran a window: an address that differs between any two runs
 RUN_LIMIT_S = 240
 
