@@ -50,7 +50,7 @@ class WindowFit:
 
     colour: FitResult
     """model, final poses [N, 4, 4], and the validation frames' renders (window frame index -> render dict:
-    rgb, depth, opacity, with the panoptic phase also semantic and instance) with their PSNR and timing."""
+    rgb (uint8), depth, opacity, with the panoptic phase also semantic and instance) with their PSNR and timing."""
     panoptic: PanopticResult | None
     """the panoptic part (None with the panoptic phase off)."""
     initial_poses: np.ndarray

@@ -185,7 +185,8 @@ def fit_window(data: WindowData, cfg: NerfConfig, device: str = "cpu",
 
 def validate(res: FitResult, data: WindowData, render: Callable[[int], dict]) -> None:
     """Render every validation frame with `render(i)` (a dict with at least rgb [H, W, 3] and
-    samples_per_ray) and fill res.renders, val_psnr, samples_per_ray and render_s_per_image. A render made at
+    samples_per_ray) and fill res.renders (their rgb as uint8 tensors, 0-255), val_psnr, samples_per_ray and
+    render_s_per_image. A render made at
     a working scale carries its colour at that scale as "rgb_working" [h, w, 3] (not kept in res.renders): its
     PSNR is measured there, against the recorded image area-averaged to that size."""
     import cv2
@@ -198,7 +199,8 @@ def validate(res: FitResult, data: WindowData, render: Callable[[int], dict]) ->
         rgb, image = out.pop("rgb_working", out["rgb"]), data.images[i]
         if rgb.shape[:2] != image.shape[:2]:
             image = cv2.resize(image, (rgb.shape[1], rgb.shape[0]), interpolation=cv2.INTER_AREA)
-        res.renders[i] = out
+        # kept as the 8 bits it is stored as (rowmap.renders.encode rounds alike): a quarter of the memory
+        res.renders[i] = {**out, "rgb": (out["rgb"].clamp(0, 1) * 255).round().to(torch.uint8)}
         spr.append(out["samples_per_ray"])
         target = torch.from_numpy(image).to(rgb.device).float() / 255.0
         res.val_psnr[int(data.frame_ids[i])] = psnr(rgb, target)

@@ -32,11 +32,11 @@ def file_name(window_id: int, kind: str, frame_id: int) -> str:
 
 
 def encode(kind: str, image) -> np.ndarray:
-    """The stored array of one render: rgb float [H, W, 3] in [0, 1] -> uint8; depth float [H, W] metres ->
+    """The stored array of one render: rgb float [H, W, 3] in [0, 1] -> uint8 (uint8 kept as it is); depth float [H, W] metres ->
     uint16 mm; semantic -> uint8; instance -> uint16. Accepts numpy arrays or (CPU or GPU) torch tensors."""
     a = image.detach().cpu().numpy() if hasattr(image, "detach") else np.asarray(image)
     if kind == "rgb":
-        return (np.clip(a, 0, 1) * 255).round().astype(np.uint8)
+        return a if a.dtype == np.uint8 else (np.clip(a, 0, 1) * 255).round().astype(np.uint8)
     if kind == "depth":
         return np.clip(a * 1000, 0, 65535).round().astype(np.uint16)
     if kind == "semantic":

@@ -90,3 +90,22 @@ def test_validation_psnr_of_a_small_render_is_measured_at_its_scale():
     validate(res, data, render)
     assert res.val_psnr[11] > 60 and "rgb_working" not in res.renders[1]
     assert res.renders[1]["rgb"].shape == (40, 64, 3)
+
+
+def test_validation_renders_keep_their_colour_as_the_bytes_that_are_written():
+    from types import SimpleNamespace
+
+    from nerf.trainer import validate
+    from rowmap.renders import encode
+
+    rng = np.random.default_rng(1)
+    rgb = torch.from_numpy(rng.uniform(-0.1, 1.1, (6, 8, 3)).astype(np.float32))
+    rgb[0, 0] = torch.tensor([0.5 / 255, 1.5 / 255, 254.5 / 255])  # halves: both roundings go to even
+    data = SimpleNamespace(is_train=np.array([True, False]), images=np.zeros((2, 6, 8, 3), np.uint8),
+                           frame_ids=np.array([0, 1]))
+    res = SimpleNamespace(renders={}, val_psnr={}, samples_per_ray=0.0, render_s_per_image=0.0)
+    validate(res, data, lambda i: {"rgb": rgb, "samples_per_ray": 1.0})
+    kept = res.renders[1]["rgb"]
+    assert kept.dtype == torch.uint8  # a quarter of float32's memory for every validation frame held
+    np.testing.assert_array_equal(encode("rgb", kept), encode("rgb", rgb))  # the PNG's bytes are unchanged
+    assert res.val_psnr[1] < 10  # PSNR is measured on the float render, before rounding (black target)
