@@ -23,6 +23,7 @@ PIECES = {"nerf.trainer": {"fit_window", "validate"}, "nerf.panoptic.train": {"f
 PIECE_BENCHES = {
     "bench/render.py": "times fit_window's training steps and the renders of one colour fit",
     "bench/skips.py": "times the skips inside the colour and panoptic phases, one phase at a time",
+    "bench/step_profile.py": "profiles and times the colour phase's training steps alone, set-up subtracted",
 }
 """Benchmarks that time a step of the sequence on its own, not the sequence."""
 TINY = ["synth.n_frames=12", "synth.width=64", "synth.height=40", "synth.n_labelled=2", "synth.supersample=1",
