@@ -8,7 +8,8 @@
 | detector | 1 if p's segment belongs to another fruit            | 1 if p lies in a detector segment    |
 | shape    | 0 within radius + margin_m of f's sphere centre,     | SHAPE_INSIDE if p lies on the front  |
 |          | rising to 1 at halo_factor x radius + margin_m;      | half of some fruit's sphere          |
-|          | UNKNOWN_SHAPE where f has no sphere                  |                                      |
+|          | UNKNOWN_SHAPE where f has no sphere and p lies in    |                                      |
+|          | another's                                            |                                      |
 | surface  | distance to f's seen surface / margin_m (at most 1), | 1                                    |
 |          | where p lies on some fruit's seen surface            |                                      |
 | order    | 0 up to margin_m beyond f's centre along the ray,    | 0                                    |
@@ -29,9 +30,9 @@ WEIGHTS = {"render": 1.0, "detector": 0.8, "shape": 1.5, "surface": 0.6, "order"
 """the weight of each term in the cost (render 1 sets the scale)."""
 SHAPE_INSIDE = 0.3
 """shape cost of background on a point inside a fruit's sphere, on the half facing the camera."""
-UNKNOWN_SHAPE = 1.15
-"""shape cost of a fruit without a sphere, in (render, render + SHAPE_INSIDE): another fruit's sphere takes
-its pixels, background does not."""
+UNKNOWN_SHAPE = 0.8
+"""shape cost of a fruit without a sphere on a point inside another fruit's sphere (0 elsewhere); with the
+weights, between render and render + SHAPE_INSIDE: that fruit takes the pixel, background does not."""
 
 
 def terms(ev: Evidence, cfg: Config) -> dict[str, np.ndarray]:
@@ -47,7 +48,7 @@ def terms(ev: Evidence, cfg: Config) -> dict[str, np.ndarray]:
     front = ~(ev.beyond > cfg.margin_m)
     inside = (ev.rel <= 1.0 + cfg.margin_m / r) & front
     shape = np.zeros((n, m))
-    shape[:, 1:] = np.where(np.isnan(ev.rel), UNKNOWN_SHAPE, np.clip(excess, 0.0, 1.0))
+    shape[:, 1:] = np.where(np.isnan(ev.rel), UNKNOWN_SHAPE * inside.any(1)[:, None], np.clip(excess, 0.0, 1.0))
     shape[:, 0] = SHAPE_INSIDE * inside.any(1)
     out["shape"] = shape
     on = np.isfinite(ev.gap) & front

@@ -88,14 +88,18 @@ def evidence(frame: Frame, models: FruitModels, owners: dict[tuple[int, int], in
     (segment_owner). The render's confidence is BORDER_CONFIDENCE in the border band and, on a stuff pixel on
     a fruit's seen surface, that fruit's render pixels / its hidden surface pixels (at most 1)."""
     h, w = frame.label.shape
-    boxes = models.in_view((h, w), frame.k, frame.c2w, cfg.margin_m)
+    boxes = models.in_view((h, w), frame.k, frame.c2w, cfg)
     ids = np.array(sorted(set(np.unique(frame.label[frame.label > 0]).tolist()) | set(boxes)), np.int64)
     seg = frame.segments if frame.segments is not None else np.zeros((h, w), np.int64)
-    near = (frame.label != 0) | (seg > 0)
+    near = np.zeros((h, w), bool)
     for v0, v1, u0, u1 in boxes.values():
         near[v0:v1, u0:u1] = True
-    v, u = np.nonzero(near & (frame.depth > 0))
+    v, u = np.nonzero((near | (frame.label != 0) | (seg > 0)) & (frame.depth > 0))
     points = unproject(frame.depth, frame.k, frame.c2w, v, u)
+    centres, radii = models.spheres(ids.tolist())
+    reach = (np.linalg.norm(points[:, None] - centres[None], axis=2) <= radii * cfg.halo_factor + cfg.margin_m).any(1)
+    keep = reach | (frame.label[v, u] != 0) | (seg[v, u] > 0)    # the other pixels can only be background
+    v, u, points = v[keep], u[keep], points[keep]
     rel, beyond, gap = models.query(ids.tolist(), points, frame.c2w[:3, 3], cfg.margin_m)
     owner = segment_owner(frame.label, seg)
     for (f, s), g in owners.items():
@@ -115,5 +119,4 @@ def evidence(frame: Frame, models: FruitModels, owners: dict[tuple[int, int], in
     cover = np.where(n_hidden >= MIN_HIDDEN_PX * max(1.0, h * w / BASE_PIXELS), shown / np.maximum(n_hidden, 1), 1.0)
     cover = np.minimum(cover, 1.0)
     confidence = np.minimum(confidence, np.where(hidden, cover[None], 1.0).min(1, initial=1.0))
-    radius = np.array([models[f].radius if models[f].centre is not None else np.nan for f in ids.tolist()])
-    return Evidence(v * w + u, ids, points, render, confidence, detector, segment, rel, beyond, gap, radius)
+    return Evidence(v * w + u, ids, points, render, confidence, detector, segment, rel, beyond, gap, radii)

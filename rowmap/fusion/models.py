@@ -17,9 +17,12 @@ from nerf.panoptic.complete import sphere_boxes
 from nerf.surfaces import fruit_sphere, robust_centre
 from rowmap.fusion.association import MIN_SPLIT_FRAMES, LocalFruit
 from rowmap.fusion.settings import Config
+from rowmap.geometry import subsample
 
 MIN_SPHERE_POINTS = 20
 """points: fewer fit no sphere."""
+MAX_FIT_POINTS = 3000
+"""points a sphere is fitted to (evenly subsampled)."""
 
 
 @dataclass
@@ -32,9 +35,12 @@ class FruitModel:
     radius: float = np.nan
     surface: cKDTree | None = None     # the points inside the sphere, one per margin_m / 2 cube
 
-    def refit(self, cfg: Config) -> "FruitModel":
-        """The sphere of its points (kept where none fits any more) and the seen surface inside it."""
-        fit = fruit_sphere(self.points, cfg.max_fruit_radius_m) if len(self.points) >= MIN_SPHERE_POINTS else None
+    def refit(self, cfg: Config, keep_sphere: bool = False) -> "FruitModel":
+        """The sphere of its points (kept where none fits, or where it has one and keep_sphere) and the seen
+        surface: the points inside the sphere."""
+        fit = None
+        if (self.centre is None or not keep_sphere) and len(self.points) >= MIN_SPHERE_POINTS:
+            fit = fruit_sphere(self.points[subsample(len(self.points), MAX_FIT_POINTS)], cfg.max_fruit_radius_m)
         if fit is not None:
             self.centre, self.radius = fit[0], float(fit[1])
         if self.centre is not None:
@@ -47,34 +53,37 @@ class FruitModel:
 class FruitModels(dict):
     """{fruit id: FruitModel}, with the query one frame's evidence needs."""
 
-    def in_view(self, hw: tuple[int, int], k: np.ndarray, c2w: np.ndarray, margin_m: float) -> dict[int, tuple]:
-        """{fruit id: image box (v0, v1, u0, u1)} of the fruits with a sphere whose box meets the image."""
+    def in_view(self, hw: tuple[int, int], k: np.ndarray, c2w: np.ndarray, cfg: Config) -> dict[int, tuple]:
+        """{fruit id: image box (v0, v1, u0, u1)} of the fruits whose sphere, widened to the halo
+        (halo_factor x radius + margin_m), meets the image."""
         ids = [f for f, m in self.items() if m.centre is not None]
         if not ids:
             return {}
         boxes = sphere_boxes(hw, k, c2w, np.stack([self[f].centre for f in ids]),
-                             np.array([self[f].radius + margin_m for f in ids]))
+                             np.array([self[f].radius * cfg.halo_factor + cfg.margin_m for f in ids]))
         full = (0, hw[0], 0, hw[1])
         return {f: full if b is None else b for f, b in zip(ids, boxes) if b is None or (b[0] < b[1] and b[2] < b[3])}
+
+    def spheres(self, ids: list[int]) -> tuple[np.ndarray, np.ndarray]:
+        """(centres [F, 3], radii [F]) of fruits `ids`, nan for those without a sphere."""
+        centres = np.array([self[f].centre if self[f].centre is not None else [np.nan] * 3 for f in ids]).reshape(-1, 3)
+        return centres, np.array([self[f].radius for f in ids], np.float64)
 
     def query(self, ids: list[int], points: np.ndarray, eye: np.ndarray, margin_m: float
               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """For points [P, 3] seen from `eye` and fruits `ids` [F]: (distance to the sphere's centre / radius,
         distance beyond the centre along the point's ray in m, distance to the seen surface in m), each [P, F];
         nan where a fruit has no sphere, inf where the surface is farther than margin_m or missing."""
-        rel = np.full((len(points), len(ids)), np.nan)
-        beyond = np.full_like(rel, np.nan)
-        gap = np.full_like(rel, np.inf)
+        centres, radii = self.spheres(ids)
+        rel = np.linalg.norm(points[:, None] - centres[None], axis=2) / radii
         ray = points - eye
-        dist = np.linalg.norm(ray, axis=1)
+        dist = np.linalg.norm(ray, axis=1, keepdims=True)
+        beyond = dist - (ray / dist) @ (centres - eye).T
+        gap = np.full(rel.shape, np.inf)
         for j, f in enumerate(ids):
-            m = self[f]
-            if m.centre is not None:
-                rel[:, j] = np.linalg.norm(points - m.centre, axis=1) / m.radius
-                beyond[:, j] = dist - (ray / dist[:, None]) @ (m.centre - eye)
-                near = rel[:, j] <= 1.0 + 2 * margin_m / m.radius
-                if m.surface is not None and near.any():
-                    gap[near, j] = m.surface.query(points[near], distance_upper_bound=margin_m)[0]
+            near = np.flatnonzero(rel[:, j] <= 1.0 + 2 * margin_m / radii[j])
+            if self[f].surface is not None and len(near):
+                gap[near, j] = self[f].surface.query(points[near], distance_upper_bound=margin_m)[0]
         return rel, beyond, gap
 
 
@@ -168,7 +177,7 @@ def update(models: FruitModels, grown: dict[int, list[np.ndarray]], seg_views: d
     out = FruitModels()
     for f, m in models.items():
         pts = np.concatenate([m.points, *grown.get(f, [])]) if grown.get(f) else m.points
-        out[f] = FruitModel(m.class_id, pts, m.centre, m.radius).refit(cfg)
+        out[f] = FruitModel(m.class_id, pts, m.centre, m.radius).refit(cfg, keep_sphere=True)
     owners = {}
     for f, views in sorted(seg_views.items()):
         if f in out:
