@@ -91,16 +91,20 @@ def evidence(frame: Frame, models: FruitModels, owners: dict[tuple[int, int], in
     boxes = models.in_view((h, w), frame.k, frame.c2w, cfg)
     ids = np.array(sorted(set(np.unique(frame.label[frame.label > 0]).tolist()) | set(boxes)), np.int64)
     seg = frame.segments if frame.segments is not None else np.zeros((h, w), np.int64)
-    near = np.zeros((h, w), bool)
-    for v0, v1, u0, u1 in boxes.values():
-        near[v0:v1, u0:u1] = True
-    v, u = np.nonzero((near | (frame.label != 0) | (seg > 0)) & (frame.depth > 0))
+    # a pixel only background can take: no render fruit, no segment, outside every fruit's halo ball
+    v, u = np.nonzero(((frame.label != 0) | (seg > 0)) & (frame.depth > 0))
+    keep = np.zeros((h, w), bool)
+    keep[v, u] = True
+    for f, (v0, v1, u0, u1) in boxes.items():
+        bv, bu = np.nonzero((frame.depth[v0:v1, u0:u1] > 0) & ~keep[v0:v1, u0:u1])
+        p = unproject(frame.depth, frame.k, frame.c2w, bv + v0, bu + u0)
+        m = models[f]
+        near = np.linalg.norm(p - m.centre, axis=1) <= m.radius * cfg.halo_factor + cfg.margin_m
+        keep[bv[near] + v0, bu[near] + u0] = True
+    v, u = np.nonzero(keep)
     points = unproject(frame.depth, frame.k, frame.c2w, v, u)
-    centres, radii = models.spheres(ids.tolist())
-    reach = (np.linalg.norm(points[:, None] - centres[None], axis=2) <= radii * cfg.halo_factor + cfg.margin_m).any(1)
-    keep = reach | (frame.label[v, u] != 0) | (seg[v, u] > 0)    # the other pixels can only be background
-    v, u, points = v[keep], u[keep], points[keep]
     rel, beyond, gap = models.query(ids.tolist(), points, frame.c2w[:3, 3], cfg.margin_m)
+    radii = models.spheres(ids.tolist())[1]
     owner = segment_owner(frame.label, seg)
     for (f, s), g in owners.items():
         if f == frame.frame_id and s < len(owner):

@@ -50,6 +50,12 @@ class FruitModel:
         return self
 
 
+def dot3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """[P, F] dot products of points a [P, 3] and b [F, 3], elementwise (a BLAS matmul of this shape is slower,
+    and much slower on a busy machine)."""
+    return a[:, :1] * b[:, 0] + a[:, 1:2] * b[:, 1] + a[:, 2:3] * b[:, 2]
+
+
 class FruitModels(dict):
     """{fruit id: FruitModel}, with the query one frame's evidence needs."""
 
@@ -75,10 +81,11 @@ class FruitModels(dict):
         distance beyond the centre along the point's ray in m, distance to the seen surface in m), each [P, F];
         nan where a fruit has no sphere, inf where the surface is farther than margin_m or missing."""
         centres, radii = self.spheres(ids)
-        rel = np.linalg.norm(points[:, None] - centres[None], axis=2) / radii
+        sq = (points ** 2).sum(1)[:, None] - 2 * dot3(points, centres) + (centres ** 2).sum(1)[None]
+        rel = np.sqrt(np.maximum(sq, 0.0)) / radii
         ray = points - eye
         dist = np.linalg.norm(ray, axis=1, keepdims=True)
-        beyond = dist - (ray / dist) @ (centres - eye).T
+        beyond = dist - dot3(ray / dist, centres - eye)
         gap = np.full(rel.shape, np.inf)
         for j, f in enumerate(ids):
             near = np.flatnonzero(rel[:, j] <= 1.0 + 2 * margin_m / radii[j])
