@@ -162,6 +162,10 @@ class MaskOverlaps:
                 for wb in sorted(ws)[i + 1:]:
                     self.shared[(wa, wb)].append(f)
 
+    def frames(self, wa: int, wb: int) -> list[int]:
+        """The frames windows wa and wb both rendered."""
+        return self.shared.get((min(wa, wb), max(wa, wb)), [])
+
     def joint(self, wa: int, wb: int, f: int) -> list[tuple[int, int, int]]:
         """(code in wa, code in wb, pixels) over frame f's pixels where either window has a slot."""
         lo, hi = min(wa, wb), max(wa, wb)
@@ -176,7 +180,7 @@ class MaskOverlaps:
     def overlap(self, wa: int, codes_a: dict, wb: int, codes_b: dict) -> tuple[int, int, int]:
         """(intersection, union, smaller mask) pixels of two windows' masks ({frame: codes}) over shared frames."""
         inter = union = smaller = 0
-        for f in self.shared.get((min(wa, wb), max(wa, wb)), []):
+        for f in self.frames(wa, wb):
             ca, cb = codes_a.get(f, ()), codes_b.get(f, ())
             n_a = n_b = 0
             for x, y, n in self.joint(wa, wb, f):

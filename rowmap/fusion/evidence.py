@@ -1,5 +1,5 @@
 """Per-frame evidence: for each pixel and each candidate fruit, what the render, the detector and the fruit
-models say. The assignment (rowmap.fusion.assign) turns it into one id per pixel."""
+models say. The assignment (rowmap.fusion.assignment) turns it into one id per pixel."""
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -53,14 +53,14 @@ class Evidence:
 def render_label(labels: list[np.ndarray], support: list[dict[int, float]]) -> tuple[np.ndarray, np.ndarray]:
     """([H, W] one render label per pixel, [H, W] the window it came from) from the renders several windows
     made of a frame (`labels`: fruit ids, 0 stuff, -1 void; the nearest window first; `support`: per window
-    {fruit: how well it saw it}). A fruit's label counts from the window that saw it best; then stuff; then a
+    {fruit: how well it saw it}). A fruit's label counts from the window that saw it best of those showing it here; then stuff; then a
     fruit from another window; ties go to the nearer window. A window that saw a fruit only while it entered
     its stretch of row renders it smaller, or with a neighbour's id."""
-    best: dict[int, tuple[float, int]] = {}
-    for j, s in enumerate(support):
-        for f, n in s.items():
-            if f not in best or n > best[f][0]:
-                best[f] = (n, j)
+    best: dict[int, tuple[float, int]] = {}   # among the windows that show the fruit in this frame
+    for j, (s, lab) in enumerate(zip(support, labels)):
+        for f in np.unique(lab[lab > 0]).tolist():
+            if f not in best or s.get(f, 0.0) > best[f][0]:
+                best[f] = (s.get(f, 0.0), j)
     out, src, prio = labels[0].copy(), np.zeros(labels[0].shape, np.int64), np.full(labels[0].shape, -1)
     for j, lab in enumerate(labels):
         is_best = np.zeros(int(max(lab.max(), 0)) + 1, bool)
@@ -82,7 +82,7 @@ def segment_owner(label: np.ndarray, segments: np.ndarray) -> np.ndarray:
     return owner
 
 
-def evidence(frame: Frame, models: FruitModels, owners: dict[tuple[int, int], int], cfg: Config) -> Evidence:
+def frame_evidence(frame: Frame, models: FruitModels, owners: dict[tuple[int, int], int], cfg: Config) -> Evidence:
     """The evidence of one frame. Candidates: the fruits the render paints and those whose sphere is in view.
     The detector segment's fruit: `owners` ((frame, segment) -> fruit, from a split) or the render's
     (segment_owner). The render's confidence is BORDER_CONFIDENCE in the border band and, on a stuff pixel on

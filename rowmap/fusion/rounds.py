@@ -7,8 +7,8 @@ from collections.abc import Callable, Iterable, Iterator
 
 import numpy as np
 
-from rowmap.fusion.assign import assign
-from rowmap.fusion.evidence import Frame, evidence
+from rowmap.fusion.assignment import assign
+from rowmap.fusion.evidence import Frame, frame_evidence
 from rowmap.fusion.models import FruitModels, segment_views, update
 from rowmap.fusion.association import MIN_GROUP_PX, MAX_POINTS
 from rowmap.fusion.settings import Config
@@ -18,7 +18,7 @@ from rowmap.geometry import subsample
 def fused_label(frame: Frame, models: FruitModels, owners: dict, cfg: Config) -> tuple[np.ndarray, object, np.ndarray]:
     """([H, W] fused fruit ids of one frame, 0 = background, -1 = void where the render had a dropped slot and
     the pixel stays background; the evidence; the assigned id of each evidence pixel)."""
-    ev = evidence(frame, models, owners, cfg)
+    ev = frame_evidence(frame, models, owners, cfg)
     ids = assign(ev, cfg)
     out = frame.label.copy()
     was = out.ravel()[ev.pixels]

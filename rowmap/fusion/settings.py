@@ -4,7 +4,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 TERMS = ("render", "detector", "shape", "surface", "order")
-"""The cost terms of the per-pixel assignment (rowmap.fusion.assign); docs/fusion.md has their table."""
+"""The cost terms of the per-pixel assignment (rowmap.fusion.assignment); docs/fusion.md has their table."""
 
 
 @dataclass(frozen=True)
@@ -36,9 +36,9 @@ class Config:
                 raise ValueError(f"panoptic_fusion.{name} must be > 0, got {getattr(self, name)}")
         if not 0.0 <= self.min_mask_iou <= 1.0:
             raise ValueError(f"panoptic_fusion.min_mask_iou must be in [0, 1], got {self.min_mask_iou}")
-        if self.group_gap_m < 0 or self.detector_split_m < 0:
-            raise ValueError(f"panoptic_fusion.group_gap_m and detector_split_m must be >= 0, got "
-                             f"{self.group_gap_m}, {self.detector_split_m}")
+        for name in ("group_gap_m", "detector_split_m"):
+            if not getattr(self, name) >= 0:
+                raise ValueError(f"panoptic_fusion.{name} must be >= 0, got {getattr(self, name)}")
         if not self.halo_factor >= 1:
             raise ValueError(f"panoptic_fusion.halo_factor must be >= 1, got {self.halo_factor}")
         if self.refine_rounds not in range(4):

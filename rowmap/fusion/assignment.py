@@ -28,7 +28,7 @@ from rowmap.fusion.settings import Config
 
 WEIGHTS = {"render": 1.0, "detector": 0.8, "shape": 1.5, "surface": 0.6, "order": 1.5}
 """the weight of each term in the cost (render 1 sets the scale)."""
-SHAPE_INSIDE = 0.3
+SHAPE_INSIDE = 0.2
 """shape cost of background on a point inside a fruit's sphere, on the half facing the camera."""
 UNKNOWN_SHAPE = 0.8
 """shape cost of a fruit without a sphere on a point inside another fruit's sphere (0 elsewhere); with the
