@@ -5,6 +5,7 @@ depth, and writes the fused frames and tables."""
 from __future__ import annotations
 
 from collections import defaultdict
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -15,8 +16,8 @@ from pipeline.classes import THING_IDS, VOID
 from pipeline.images import ImageError, write_png
 from pipeline.stage import StageContext
 from rowmap.detections import dropped_segments, fruit_segments
-from rowmap.fusion import Config, Frame, associate, fit_models, fuse, local_fruits, render_label, slot_views
-from rowmap.fusion.association import code
+from rowmap.fusion import Config, Frame, fit_models, fuse, render_label, slot_views
+from rowmap.fusion.association import code, row_fruits, slot_table
 from rowmap.geometry import POSE_COLS, window_alignments, with_sensor_depth
 from rowmap.renders import PANOPTIC_KINDS, Renders, encode
 
@@ -83,6 +84,79 @@ def read_slots(views: pd.DataFrame, frames: pd.DataFrame, renders: Renders, shar
     return per_slot, masks, groups
 
 
+class FrameReader:
+    """Reads one frame's inputs for the fusion: every window's render of it with its slots mapped to row
+    fruits (`lut`), composed into one render label (render_label), the placing depth and the detector
+    segments. Keeps the composed semantic and depth of the frames read until `take` collects them."""
+
+    def __init__(self, frames: pd.DataFrame, renders: Renders, by_frame: dict[int, pd.DataFrame], group_maps: dict,
+                 lut: dict, support: dict, dropped: dict, ctx: StageContext):
+        self.frames, self.renders, self.by_frame, self.group_maps = frames, renders, by_frame, group_maps
+        self.lut, self.support, self.dropped, self.ctx = lut, support, dropped, ctx
+        self.kept: dict[int, tuple[np.ndarray, np.ndarray, bool]] = {}
+
+    def window_label(self, w: int, fid: int, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(semantic, row fruit ids (0 stuff, -1 a dropped slot), depth) of window w's render of frame fid."""
+        sem, inst, depth = (self.renders.read(w, fid, k, shape) for k in PANOPTIC_KINDS)
+        codes = code(inst.astype(np.int64), self.group_maps[(w, fid)])
+        thing = np.isin(sem, THING_IDS) & (inst > 0)
+        keys = np.unique(codes[thing])
+        mapped = np.array([self.lut[(w, fid)].get(int(c), 0) for c in keys], np.int64)
+        label = np.zeros(shape, np.int64)
+        label[thing] = np.where(mapped == 0, -1, mapped)[np.searchsorted(keys, codes[thing])]
+        return sem, label, depth
+
+    def __call__(self, fid: int) -> Frame:
+        fr, rows = self.frames.loc[fid], self.by_frame[fid]
+        wins = rows.window_id.astype(int).tolist()
+        sems, labels, depths = zip(*(self.window_label(w, fid, (int(fr.height), int(fr.width))) for w in wins))
+        label, src = render_label(list(labels), [self.support[w] for w in wins])
+        sem, depth = (np.take_along_axis(np.stack(images), src[None], 0)[0] for images in (sems, depths))
+        self.kept[fid] = (sem, depth, bool((src > 0).any()))
+        return Frame(fid, label, with_sensor_depth(depth, self.ctx.abspath(fr.depth_path), fr.depth_scale_m),
+                     fruit_segments(fr, self.ctx.data_root, self.dropped.get(fid)), intrinsics(fr), rows.c2w.iloc[0])
+
+    def take(self, fid: int) -> tuple[np.ndarray, np.ndarray, bool]:
+        """(semantic, depth, whether any pixel came from another window than the nearest) of frame fid."""
+        return self.kept.pop(fid)
+
+
+def write_frame(fid: int, fused: np.ndarray, models, reader: FrameReader, n_windows: int, out_dir: Path,
+                ctx: StageContext) -> dict:
+    """Write one fused frame's PNGs (and its composed depth); its panoptic_frames row."""
+    fr, r = reader.frames.loc[fid], reader.by_frame[fid].iloc[0]
+    sem_r, depth, composed = reader.take(fid)
+    classes = np.zeros(max(models, default=0) + 1, np.uint8)
+    classes[list(models)] = [m.class_id for m in models.values()]
+    label = np.maximum(fused, 0)
+    stuff = np.where(np.isin(sem_r, THING_IDS), 0, sem_r)     # a thing pixel given no fruit is background
+    sem = np.where(fused < 0, VOID, np.where(label > 0, classes[label], stuff))
+    name = f"{fid:06d}.png"
+    write_png(out_dir / "semantic" / name, sem.astype(np.uint8))
+    write_png(out_dir / "instance" / name, label.astype(np.uint16))
+    depth_path = reader.renders.relpath(int(r.window_id), fid, "depth")
+    if composed:
+        ctx.count("frames_composed_from_several_windows")
+        (out_dir / "depth").mkdir(exist_ok=True)
+        write_png(out_dir / "depth" / name, encode("depth", depth))
+        depth_path = ctx.relpath("panoptic", f"depth/{name}")
+    return {"frame_id": fid, "stamp_ns": int(fr.stamp_ns), "window_id": int(r.window_id), "offset": int(r.offset),
+            "n_windows": n_windows, "semantic_path": ctx.relpath("panoptic", f"semantic/{name}"),
+            "instance_path": ctx.relpath("panoptic", f"instance/{name}"),
+            "rgb_path": reader.renders.relpath(int(r.window_id), fid, "rgb"), "depth_path": depth_path,
+            "n_fruits": int(len(np.unique(label[label > 0]))),
+            **dict(zip(POSE_COLS, pose_txyzq(r.c2w[None])[0].tolist()))}
+
+
+def slots_table(local: list) -> pd.DataFrame:
+    """The fruit_slots table: one row per local fruit."""
+    return pd.DataFrame([{
+        "window_id": lf.window_id, "slot": lf.slot, "part": lf.part, "fruit_id": lf.fruit_id,
+        "class_id": lf.class_id, "n_frames": len({f for f, _ in lf.frames}), "n_px": lf.n_px,
+        **{f"{a}_m": None if lf.centre is None else float(lf.centre[i]) for i, a in enumerate("xyz")},
+        "drop_reason": lf.drop_reason} for lf in local], columns=schemas.get("fruit_slots").names)
+
+
 def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]:
     frames: pd.DataFrame = inputs["frames"].set_index("frame_id", drop=False)
     renders = Renders(inputs["renders"], ctx.data_root)
@@ -106,83 +180,19 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
     n_win = views.groupby("frame_id").window_id.nunique()
     shared = set(n_win[n_win > 1].index.astype(int))
     per_slot, masks, group_maps = read_slots(views, frames, renders, shared, cfg, ctx)
-    local = local_fruits(per_slot, cfg)
-    groups = associate(local, masks, cfg)
-    # row-level ids increase along the row (x, then z); fruits a split adds follow
-    centre = [np.median(np.stack([local[i].centre for i in g]), 0) for g in groups]
-    for fruit_id, j in enumerate(sorted(range(len(groups)), key=lambda j: (centre[j][0], centre[j][2], centre[j][1])), 1):
-        for i in groups[j]:
-            local[i].fruit_id = fruit_id
-    models = fit_models(groups, local, per_slot, cfg)
-    lut: dict[tuple[int, int], dict[int, int]] = defaultdict(dict)   # (window, frame) -> {slot code: fruit}
-    support: dict[int, dict[int, float]] = defaultdict(lambda: defaultdict(float))   # window -> fruit -> frames
-    for lf in local:
-        for f, g in lf.frames:
-            lut[(lf.window_id, f)][int(code(lf.slot, g))] = lf.fruit_id
-        if lf.fruit_id:
-            support[lf.window_id][lf.fruit_id] += len({f for f, _ in lf.frames}) + lf.n_px * 1e-9
+    local, groups = row_fruits(per_slot, masks, cfg)
+    if len(groups) > 65535:
+        raise ValueError(f"panoptic_fusion: {len(groups)} fruits do not fit 16-bit instance PNGs (max 65535)")
     pick = views.assign(abs_off=views.offset.abs()).sort_values(["frame_id", "abs_off", "window_id"])
     by_frame = {int(f): g for f, g in pick.groupby("frame_id", sort=True)}
-    dropped = dropped_segments(inputs.get("detections_filtered"))
-    extra: dict[int, tuple] = {}   # frame -> (semantic, depth, composed) of the frame last loaded
-
-    def load(fid: int) -> Frame:
-        fr, rows = frames.loc[fid], by_frame[fid]
-        shape = (int(fr.height), int(fr.width))
-        sems, labels, depths = [], [], []
-        for w in rows.window_id.astype(int):
-            sem, inst, depth = (renders.read(w, fid, k, shape) for k in PANOPTIC_KINDS)
-            codes = code(inst.astype(np.int64), group_maps[(w, fid)])
-            thing = np.isin(sem, THING_IDS) & (inst > 0)
-            table = lut[(w, fid)]
-            keys = np.unique(codes[thing])
-            mapped = np.array([table.get(int(c), 0) for c in keys], np.int64)
-            label = np.zeros(shape, np.int64)
-            label[thing] = np.where(mapped == 0, -1, mapped)[np.searchsorted(keys, codes[thing])]
-            sems.append(sem), labels.append(label), depths.append(depth)
-        label, src = render_label(labels, [support[int(w)] for w in rows.window_id])
-        pick_ = lambda images: np.take_along_axis(np.stack(images), src[None], 0)[0]   # noqa: E731
-        depth = pick_(depths)
-        extra[fid] = (pick_(sems), depth, bool((src > 0).any()))
-        return Frame(fid, label, with_sensor_depth(depth, ctx.abspath(fr.depth_path), fr.depth_scale_m),
-                     fruit_segments(fr, ctx.data_root, dropped.get(fid)), intrinsics(fr), rows.c2w.iloc[0])
-
-    out_rows, n_fruits = [], len(groups)
-    for fid, fused, models in fuse(sorted(by_frame), load, models, cfg, ctx.progress):
-        fr, r = frames.loc[fid], by_frame[fid].iloc[0]
-        sem_r, depth, composed = extra.pop(fid)
-        classes = np.zeros(max(models, default=0) + 1, np.uint8)
-        for f, m in models.items():
-            classes[f] = m.class_id
-        label = np.maximum(fused, 0)
-        sem = np.where(fused < 0, VOID, np.where(label > 0, classes[label], np.where(np.isin(sem_r, THING_IDS), 0, sem_r)))
-        name = f"{fid:06d}.png"
-        write_png(out_dir / "semantic" / name, sem.astype(np.uint8))
-        write_png(out_dir / "instance" / name, label.astype(np.uint16))
-        depth_path = renders.relpath(int(r.window_id), fid, "depth")
-        if composed:
-            ctx.count("frames_composed_from_several_windows")
-            (out_dir / "depth").mkdir(exist_ok=True)
-            write_png(out_dir / "depth" / name, encode("depth", depth))
-            depth_path = ctx.relpath("panoptic", f"depth/{name}")
-        n_fruits = max(n_fruits, max(models, default=0))
-        out_rows.append({"frame_id": fid, "stamp_ns": int(fr.stamp_ns), "window_id": int(r.window_id),
-                         "offset": int(r.offset), "n_windows": int(n_win[fid]),
-                         "semantic_path": ctx.relpath("panoptic", f"semantic/{name}"),
-                         "instance_path": ctx.relpath("panoptic", f"instance/{name}"),
-                         "rgb_path": renders.relpath(int(r.window_id), fid, "rgb"), "depth_path": depth_path,
-                         "n_fruits": int(len(np.unique(label[label > 0]))),
-                         **dict(zip(POSE_COLS, pose_txyzq(r.c2w[None])[0].tolist()))})
-    if n_fruits > 65535:
-        raise ValueError(f"panoptic_fusion: {n_fruits} fruits do not fit 16-bit instance PNGs (max 65535)")
-    slots = pd.DataFrame([{
-        "window_id": lf.window_id, "slot": lf.slot, "part": lf.part, "fruit_id": lf.fruit_id,
-        "class_id": lf.class_id, "n_frames": len({f for f, _ in lf.frames}), "n_px": lf.n_px,
-        **{f"{a}_m": None if lf.centre is None else float(lf.centre[i]) for i, a in enumerate("xyz")},
-        "drop_reason": lf.drop_reason} for lf in local], columns=schemas.get("fruit_slots").names)
+    reader = FrameReader(frames, renders, by_frame, group_maps, *slot_table(local),
+                         dropped_segments(inputs.get("detections_filtered")), ctx)
+    rows, models = [], fit_models(groups, local, per_slot, cfg)
+    for fid, fused, models in fuse(sorted(by_frame), reader, models, cfg, ctx.progress):
+        rows.append(write_frame(fid, fused, models, reader, int(n_win[fid]), out_dir, ctx))
     ctx.count("slots", len(local))
     ctx.count("slots_dropped", sum(lf.fruit_id == 0 for lf in local))
-    ctx.summary.update(windows=int(views.window_id.nunique()), frames=len(out_rows), fruits=n_fruits,
-                       frames_in_several_windows=len(shared))
-    return {"panoptic_frames": pd.DataFrame(out_rows, columns=schemas.get("panoptic_frames").names),
-            "fruit_slots": slots}
+    ctx.summary.update(windows=int(views.window_id.nunique()), frames=len(rows), fruits=max(models, default=0),
+                       fruits_split_off=max(models, default=0) - len(groups), frames_in_several_windows=len(shared))
+    return {"panoptic_frames": pd.DataFrame(rows, columns=schemas.get("panoptic_frames").names),
+            "fruit_slots": slots_table(local)}

@@ -293,3 +293,30 @@ def associate(fruits: list[LocalFruit], masks: dict[tuple[int, int], np.ndarray]
                 join(r, i)
     return [[i for i in g if fruits[i].centre is not None] for g in members.values()
             if any(fruits[i].centre is not None for i in g)]
+
+
+def row_fruits(views: dict[tuple[int, int], dict], masks: dict[tuple[int, int], np.ndarray], cfg: Config
+               ) -> tuple[list[LocalFruit], list[list[int]]]:
+    """Local fruits (local_fruits) and the groups of them that are one row fruit (associate), each local fruit
+    given its row fruit's id: ids increase along the row (x, then z, then y)."""
+    local = local_fruits(views, cfg)
+    groups = associate(local, masks, cfg)
+    centre = [np.median(np.stack([local[i].centre for i in g]), 0) for g in groups]
+    order = sorted(range(len(groups)), key=lambda j: (centre[j][0], centre[j][2], centre[j][1]))
+    for fruit_id, j in enumerate(order, 1):
+        for i in groups[j]:
+            local[i].fruit_id = fruit_id
+    return local, groups
+
+
+def slot_table(local: list[LocalFruit]) -> tuple[dict, dict]:
+    """({(window, frame): {slot code: fruit id}}, {window: {fruit id: frames it shows the fruit in}}): how each
+    render's slots map to row fruits, and how well each window saw each fruit (ties: more pixels)."""
+    lut: dict[tuple[int, int], dict[int, int]] = defaultdict(dict)
+    support: dict[int, dict[int, float]] = defaultdict(lambda: defaultdict(float))
+    for lf in local:
+        for f, g in lf.frames:
+            lut[(lf.window_id, f)][int(code(lf.slot, g))] = lf.fruit_id
+        if lf.fruit_id:
+            support[lf.window_id][lf.fruit_id] += len({f for f, _ in lf.frames}) + lf.n_px * 1e-9
+    return lut, support
