@@ -9,10 +9,9 @@ import numpy as np
 import pandas as pd
 import pyarrow.parquet as pq
 import pytest
-from scipy.spatial import cKDTree
 
 from nerf.geometry import pose_txyzq
-from nerf.surfaces import fruit_sphere, unproject
+from nerf.surfaces import fruit_sphere
 from pipeline import cli
 from pipeline.classes import THING_IDS
 from pipeline.images import ImageError, read_label
