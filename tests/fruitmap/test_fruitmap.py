@@ -259,23 +259,6 @@ def test_a_slot_over_two_fruits_in_one_frame_splits_into_groups_that_join_their_
         panoptic_fusion.Config(group_gap_m=-1.0)
 
 
-def sphere_depth(k: np.ndarray, hw: tuple[int, int], spheres: list[tuple[np.ndarray, float]],
-                 background_m: float) -> tuple[np.ndarray, np.ndarray]:
-    """(z-depth [H, W], index of the sphere each pixel sees, -1 = background) of spheres in front of a camera
-    at the origin looking along +z (identity pose)."""
-    h, w = hw
-    v, u = np.mgrid[0:h, 0:w]
-    d = np.stack([(u + 0.5 - k[2]) / k[0], (v + 0.5 - k[3]) / k[1], np.ones((h, w))], -1)  # rays with z = 1
-    depth, who = np.full((h, w), background_m), np.full((h, w), -1)
-    for i, (c, r) in enumerate(spheres):
-        a, b, cc = (d ** 2).sum(-1), -2 * (d @ c), c @ c - r * r
-        disc = b * b - 4 * a * cc
-        t = np.where(disc >= 0, (-b - np.sqrt(np.maximum(disc, 0))) / (2 * a), np.inf)
-        nearer = t < depth
-        depth, who = np.where(nearer, t, depth), np.where(nearer, i, who)
-    return depth, who
-
-
 def masks_of(shape: tuple[int, int], painted: dict[tuple[int, int], list[tuple[int, slice]]]) -> dict:
     """{(window, frame): slot-code image} with each listed (slot, column slice) painted over all rows."""
     out = {}
@@ -358,14 +341,6 @@ def test_a_sphere_of_the_fruits_size_puts_the_centre_behind_a_shallow_cap_seen_f
         got = sphere_behind(cap, eye, 0.038)
         assert got is not None and np.linalg.norm(got - centre) < 0.006
         assert sphere_behind(cap, eye, 0.0) is None and sphere_behind(cap[:3], eye, 0.04) is None
-
-
-def front_cap(ball: tuple[np.ndarray, float], n: int = 6000, seed: int = 0) -> np.ndarray:
-    """Points on the part of a sphere that a camera at the origin sees: a fruit's seen surface."""
-    c, r = ball
-    d = np.random.default_rng(seed).normal(size=(n, 3))
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
-    return c + r * d[d @ c < -r]
 
 
 def test_the_detector_fruit_segments_leave_out_stuff_and_the_segments_the_depth_filter_dropped(tmp_path):
@@ -687,18 +662,6 @@ def test_evaluate_is_perfect_on_perfect_input(perfect_row):
     assert metric(ev, "row", "diameter_mae_m") < metric(ev, "row", "diameter_sphere_mae_m")
     units = ev.set_index("metric").unit
     assert units["psnr"].iloc[0] == "dB" and units["diameter_mae_m"] == "m" and units["pq"].iloc[0] == "fraction"
-
-
-def split_and_drop(wid: int, fid: int, sem: np.ndarray, slots: np.ndarray):
-    """Window 0: every fruit gets a new slot on every other frame. Window 1: its largest fruit is lost."""
-    if wid == 0 and fid % 4 == 2:
-        slots = np.where(slots > 0, slots + 500, 0)
-    if wid == 1:
-        ids, n = np.unique(slots[slots > 0], return_counts=True)
-        if len(ids):
-            lost = slots == ids[np.argmax(n)]
-            sem, slots = np.where(lost, 1, sem), np.where(lost, 0, slots)
-    return sem, slots
 
 
 def test_evaluate_is_worse_on_split_slots_and_missed_fruits(make_row, perfect_row):
