@@ -664,6 +664,18 @@ def test_evaluate_is_perfect_on_perfect_input(perfect_row):
     assert units["psnr"].iloc[0] == "dB" and units["diameter_mae_m"] == "m" and units["pq"].iloc[0] == "fraction"
 
 
+def split_and_drop(wid: int, fid: int, sem: np.ndarray, slots: np.ndarray):
+    """Window 0: every fruit gets a new slot on every other frame. Window 1: its largest fruit is lost."""
+    if wid == 0 and fid % 4 == 2:
+        slots = np.where(slots > 0, slots + 500, 0)
+    if wid == 1:
+        ids, n = np.unique(slots[slots > 0], return_counts=True)
+        if len(ids):
+            lost = slots == ids[np.argmax(n)]
+            sem, slots = np.where(lost, 1, sem), np.where(lost, 0, slots)
+    return sem, slots
+
+
 def test_evaluate_is_worse_on_split_slots_and_missed_fruits(make_row, perfect_row):
     row = make_row(hook=split_and_drop)
     run_stages(row)
