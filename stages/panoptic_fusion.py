@@ -23,7 +23,6 @@ from rowmap.renders import PANOPTIC_KINDS, Renders, encode
 
 INPUTS = ("frames", "windows", "window_poses", "window_metrics", "nerf", "renders", "images", "detections_filtered")
 OUTPUTS = ("panoptic_frames", "panoptic", "fruit_slots")
-__all__ = ["Config", "INPUTS", "OUTPUTS", "run"]
 
 
 def window_views(windows: pd.DataFrame, window_poses: pd.DataFrame, window_metrics: pd.DataFrame,

@@ -7,7 +7,7 @@ their masks overlap on the frames both windows rendered (Hungarian per window pa
 from __future__ import annotations
 
 from collections import defaultdict
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
@@ -60,7 +60,6 @@ class LocalFruit:
     fruit_id: int = 0
     drop_reason: str = ""
     median: np.ndarray | None = None
-    members: list[int] = field(default_factory=list)
 
 
 def slot_views(sem: np.ndarray, inst: np.ndarray, depth: np.ndarray, sensor: np.ndarray | None, k: np.ndarray,
