@@ -49,13 +49,13 @@ STAGES = ("fruit_count", "evaluate")
 """The stages rerun per variant, in this order."""
 
 
-def row_config(data_root: Path, seq: str) -> dict[str, dict]:
-    """The settings of STAGES as the row last ran them (its config.resolved.yaml), per stage; settings the stage
-    no longer has are left out, and a stage the file lacks keeps its defaults."""
+def row_config(data_root: Path, seq: str, stages: tuple[str, ...] = STAGES) -> dict[str, dict]:
+    """The settings of `stages` as the row last ran them (its config.resolved.yaml), per stage; settings the
+    stage no longer has are left out, and a stage the file lacks keeps its defaults."""
     path = data_root / "processed" / seq / "config.resolved.yaml"
     resolved = (yaml.safe_load(path.read_text()) or {}) if path.is_file() else {}
     out = {}
-    for name in STAGES:
+    for name in stages:
         names = {f.name for f in dataclasses.fields(dag.load_stage(name).config_class)}
         out[name] = {k: v for k, v in (resolved.get(name) or {}).items() if k in names}
     return out

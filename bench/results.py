@@ -64,6 +64,7 @@ HEADS = {"rows": "Row family (`pag bench rows`)", "rows_holdout": "Held-out rows
          "rows_unseen": "Unseen rows (`pag bench rows --unseen`)",
          "rows_seeds": "Row family on other fit seeds (`pag bench rows --fit-seed N`)",
          "count_rules": "Counting rules (`pag bench count_rules`)",
+         "fusion_terms": "Fusion cost terms (`pag bench fusion_terms`)",
          "scale": "Scale (`pag bench scale`)", "encoding": "Encoding (`pag bench encoding`)",
          "render": "Occupancy skipping and early termination (`pag bench render`)",
          "dask": "Dask workers (`pag bench dask`)", "real_row": "Real-size row (`pag bench real_row`)",
@@ -163,6 +164,18 @@ def count_rules_section(path: Path) -> str:
     return (f"{HEADS['count_rules']}, commit `{table_commit(path)}`: each rule of fruit_count "
             f"switched off on finished rows (a rule helps a row when its F1 falls with the rule off):\n\n"
             + markdown(runs) + "\n\n" + markdown(verdict))
+
+
+def fusion_terms_section(path: Path) -> str:
+    """`pag bench fusion_terms`: per row the scores with every cost term and with each term off, then the
+    verdict per term."""
+    df = pd.read_parquet(path)
+    runs = df[df.seq != ""][["seq", "variant", "row_id", "pq", "count_pred", "count_gt", "precision", "recall",
+                             "fusion_s"]]
+    verdict = df[df.seq == ""][["term", "helps", "hurts", "verdict"]]
+    return (f"{HEADS['fusion_terms']}, commit `{table_commit(path)}`: each cost term of the fusion switched off "
+            f"on finished rows (a term helps a row when its row ID consistency, else F1, else PQ falls with the "
+            f"term off):\n\n" + markdown(runs) + "\n\n" + markdown(verdict))
 
 
 def scale_section(path: Path) -> str:
@@ -292,6 +305,7 @@ def build(data_root: Path, bench_dir: Path, seq: str, extra: list[str] = (), pre
         add("rows_seeds", seed_tables[0] if seed_tables else bench_dir / "rows_seed1.parquet",
             lambda _: seeds_section(bench_dir, seed_tables))
     add("count_rules", bench_dir / "count_rules.parquet", count_rules_section)
+    add("fusion_terms", bench_dir / "fusion_terms.parquet", fusion_terms_section)
     add("scale", bench_dir / "scale.parquet", scale_section)
     add("real_row", bench_dir / "real_row.parquet", real_row_section)
     add("real_rgbd", bench_dir / "real_rgbd.parquet", real_rgbd_section)

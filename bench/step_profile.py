@@ -93,13 +93,15 @@ def encoding_limit_s(model, n_points: int, repeats: int = 5) -> float:
 def fitted_window(data_root: Path, seq: str, window: int):
     """The window as nerf_fit fits it (depth-corrected initial poses) and the stage's model settings, with the
     poses moving from the first step and no final registration (only steps are timed)."""
-    from stages import nerf_fit
+    from pipeline import dag
 
-    cfg = nerf_fit.model_config(nerf_fit.Config())
+    stage = dag.load_stage("nerf_fit").module     # through the DAG, as stage_defaults does: no stage import here
+    stage_cfg = stage.Config()
+    cfg = stage.model_config(stage_cfg)
     w, _ = window_rows(data_root, seq, window)
     w = initial_poses(w, window, None, "odometry")
     data = load_window(w, data_root)
-    data.poses_c2w, _ = depth_initial_poses(nerf_fit.Config().depth_poses, data.depths, data.intrinsics,
+    data.poses_c2w, _ = depth_initial_poses(stage_cfg.depth_poses, data.depths, data.intrinsics,
                                             data.poses_c2w)
     return data, replace(cfg, pose_warmup_steps=0, val_register_final_steps=0)
 

@@ -11,7 +11,7 @@ SCHEMA = table_schema(
     "or no valid depth). Centres are those the association matched on, from the slot's pixels unprojected "
     "with the rendered depth and the window's refined pose, in the row frame: the centre of a sphere fitted "
     "to them, of a sphere with the row's median fitted radius behind them where that fit is not plausible, "
-    "or their robust median (panoptic_fusion.centre).",
+    "or their robust median where no sphere fits.",
     col("window_id", pa.int32(), "window (windows.window_id)"),
     col("slot", pa.int32(), "window-local instance slot of the NeRF's instance PNGs"),
     col("part", pa.int32(), "cluster index of the slot's per-frame centres (0 unless the slot was split)"),

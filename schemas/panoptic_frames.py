@@ -7,7 +7,7 @@ SCHEMA = table_schema(
     "panoptic_frames",
     "One row per frame rendered by at least one fitted window (the windows' validation frames). A frame "
     "rendered by several overlapping windows is written once, based on the window whose centre frame is nearest "
-    "(smallest |offset|; ties go to the lower window_id): with panoptic_fusion.compose_shared_frames each fruit "
+    "(smallest |offset|; ties go to the lower window_id): each fruit "
     "takes its pixels from the window that saw it in the most rendered frames, and such a composed frame gets "
     "a fused depth image of its own; n_windows says how many windows rendered it. In the instance PNG the id IS "
     "the row-level fruit id of fruits.parquet (0 = stuff or none).",

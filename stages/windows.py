@@ -48,7 +48,7 @@ class Config:
     """frames, >= 0 (at most half_width): neighbouring windows grow to share this many frames where they can
     without exceeding max_extend (cover_row; never a filler window for it; below min_overlap = min_overlap).
     A shared validation frame is rendered by both windows, and panoptic_fusion takes each of its fruits from
-    the window that saw the fruit longer (compose_shared_frames): a window renders the fruits entering or
+    the window that saw the fruit longer (rowmap.fusion.render_label): a window renders the fruits entering or
     leaving its stretch of row poorly (seen in few of its training frames), and with a wide overlap those
     frames come from the neighbour. Growing costs render time for the added frames, not fit steps."""
     context_frames: int = 4

@@ -6,7 +6,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from bench import _pipeline, count_rules, rows, scale
+from bench import _pipeline, count_rules, fusion_terms, rows, scale
 from bench._row_family import FAMILY, HOLDOUT, QUICK, UNSEEN, family_row
 
 
@@ -120,6 +120,15 @@ def test_rows_quick_runs_the_pipeline_and_is_checkpointed(tmp_path, capsys):
     with pytest.raises(FileNotFoundError, match="run `pag all --seq synth_none`"):
         count_rules.main(["--seqs", "synth_none", "--data-root", str(data), "--out", str(out)])
 
+    # the fusion's cost terms, each switched off on the finished row: fusion, counting and evaluate rerun
+    assert fusion_terms.main(["--quick", "--data-root", str(data), "--out", str(out)]) == 0
+    ft = pd.read_parquet(out / "fusion_terms_quick.parquet")
+    runs = ft[ft.seq == "synth_rowsq_dense"].set_index("variant")
+    assert list(runs.index) == ["all terms", *(f"{t} off" for t in fusion_terms.TERMS)]
+    assert runs.loc["all terms", "row_id"] == pytest.approx(r["row_id_consistency"], nan_ok=True)
+    assert set(ft[ft.seq == ""].verdict) <= {"keep", "mixed", "drop", "no effect"}
+    assert before == {p: p.stat().st_mtime_ns for p in before}
+
 
 def test_count_rules_rerun_each_stage_with_the_settings_the_row_ran_with(tmp_path):
     resolved = tmp_path / "processed" / "synth_x" / "config.resolved.yaml"
@@ -168,3 +177,17 @@ def test_scale_sweeps_tables_and_exponents(tmp_path, monkeypatch):
         assert (tmp_path / name).is_file()
     with pytest.raises(ValueError, match="expected WxH"):
         scale.parse_sizes("320x180,big")
+
+
+def test_fusion_term_verdicts_read_row_id_then_f1_then_pq():
+    rows = []
+    for seq, variant, row_id, f1, pq in [("a", "all terms", 0.95, 0.9, 0.90), ("b", "all terms", 1.0, 1.0, 0.90),
+                                         ("a", "render off", 0.90, 0.95, 0.95), ("b", "render off", 1.0, 1.0, 0.9),
+                                         ("a", "shape off", 0.95, 0.9, 0.92), ("b", "shape off", 1.0, 0.95, 0.99)]:
+        rows.append({"seq": seq, "variant": variant, "row_id": row_id, "f1": f1, "pq": pq})
+    rows += [{"seq": s, "variant": f"{t} off", "row_id": r, "f1": 0.9 if s == "a" else 1.0, "pq": 0.9}
+             for t in fusion_terms.TERMS if t not in ("render", "shape") for s, r in (("a", 0.95), ("b", 1.0))]
+    v = fusion_terms.verdicts(pd.DataFrame(rows)).set_index("term")
+    assert v.loc["render", "verdict"] == "keep" and v.loc["render", "helps"] == "a"   # row ID decides over PQ
+    assert v.loc["shape", "verdict"] == "mixed"      # hurts a (PQ rises), helps b (F1 falls)
+    assert v.loc["order", "verdict"] == "no effect"

@@ -147,6 +147,6 @@ def test_a_table_not_on_disk_keeps_the_readme_section_with_its_commit(tmp_path):
     assert "commit `new111`" in text and "| PQ | 0.5 |" not in text and "| 7 |" not in text
     assert text.rstrip().endswith("Not measured in this checkout: `pag bench rows`, `pag bench rows --holdout`, "
                                   "`pag bench rows --unseen`, "
-                                  "`pag bench count_rules`, "
+                                  "`pag bench count_rules`, `pag bench fusion_terms`, "
                                   "`pag bench scale`, `pag bench real_row`, `pag bench real_rgbd`, `pag bench render`.")
     assert results.current_block(f"x\n{results.START}\n{old}\n{results.END}\n").strip() == old

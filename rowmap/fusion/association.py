@@ -1,0 +1,321 @@
+"""Association: window slots -> local fruits -> row fruits.
+
+A window's render paints each fruit it saw with a slot id. Per rendered frame a slot's pixels split into
+groups at 3D gaps (one slot painted over two fruits); a slot whose groups' centres lie in clusters apart is
+several local fruits. Local fruits of different windows are one row fruit when their centres are close and
+their masks overlap on the frames both windows rendered (Hungarian per window pair, then union-find)."""
+from __future__ import annotations
+
+from collections import defaultdict
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import linear_sum_assignment
+
+from nerf.surfaces import fruit_sphere, robust_centre, unproject
+from rowmap.fusion.settings import Config
+from rowmap.geometry import pixel_groups, runs_by_key, sphere_behind, subsample
+
+MAX_GROUPS = 256
+"""pixel groups one slot can split into in one frame (further groups stay with the largest)."""
+MIN_GROUP_PX = 50
+"""pixels: a smaller group stays with its slot's largest group in that frame."""
+MIN_SLOT_PX = 4
+"""pixels over all frames: a smaller slot is dropped (its pixels become void)."""
+MAX_POINTS = 400
+"""points kept per slot group and frame (evenly subsampled)."""
+MIN_SPLIT_FRAMES = 2
+"""frames: a cluster of a slot's (or a fruit's detector) centres seen in fewer is no fruit of its own."""
+STRONG_OVERLAP = 0.8
+"""share of the smaller mask inside the other that lets two slots match up to twice max_match_distance_m."""
+
+
+def code(slot, group):
+    """One number for a slot's pixel group in a frame (ints or int arrays)."""
+    return slot * MAX_GROUPS + group
+
+
+@dataclass
+class SlotView:
+    """One pixel group of one slot of one window in one rendered frame."""
+
+    n_px: int
+    class_px: np.ndarray   # [n_classes] pixel counts per class
+    points: np.ndarray     # [n, 3] rendered world points (subsampled)
+    eye: np.ndarray        # [3] camera centre
+    sensor_offset: np.ndarray | None = None   # [3] median sensor point - rendered point; None: no sensor depth
+
+
+@dataclass
+class LocalFruit:
+    """A window-local fruit: the (frame, group) views of one slot of one window that lie together."""
+
+    window_id: int
+    slot: int
+    part: int
+    frames: list[tuple[int, int]]
+    n_px: int
+    class_id: int
+    centre: np.ndarray | None
+    fruit_id: int = 0
+    drop_reason: str = ""
+    median: np.ndarray | None = None
+
+
+def slot_views(sem: np.ndarray, inst: np.ndarray, depth: np.ndarray, sensor: np.ndarray | None, k: np.ndarray,
+               c2w: np.ndarray, thing_ids: list[int], cfg: Config) -> tuple[dict, np.ndarray]:
+    """The slot views of one rendered frame ({(slot, group): SlotView}) and its group map [H, W] (0 = the
+    slot's largest group or no slot). `sensor`: the recorded z-depth in m (0 = none) or None."""
+    thing = np.isin(sem, thing_ids) & (inst > 0)
+    group = np.zeros(inst.shape, np.int32)
+    out = {}
+    v, u = np.nonzero(thing)
+    v, u, ids, starts, ends = runs_by_key(v, u, inst[v, u])
+    for s0, s1 in zip(starts, ends):
+        vv, uu = v[s0:s1], u[s0:s1]
+        good = depth[vv, uu] > 0
+        pts = unproject(depth, k, c2w, vv[good], uu[good])
+        labels = np.zeros(len(vv), np.int64)
+        labels[good] = pixel_groups(vv[good], uu[good], pts, cfg.group_gap_m, MIN_GROUP_PX, MAX_GROUPS)
+        group[vv, uu] = labels
+        for g in range(int(labels.max()) + 1):
+            mine = labels == g
+            pts_g = pts[labels[good] == g]
+            offset = None
+            both = mine & good & (sensor[vv, uu] > 0) if sensor is not None else None
+            if both is not None and both.any():
+                sel = subsample(int(both.sum()), MAX_POINTS)
+                vb, ub = vv[both][sel], uu[both][sel]
+                offset = np.median(unproject(sensor, k, c2w, vb, ub) - unproject(depth, k, c2w, vb, ub), 0)
+            cls = np.bincount(sem[vv[mine], uu[mine]], minlength=max(thing_ids) + 1)
+            out[(int(ids[s0]), g)] = SlotView(int(mine.sum()), cls, pts_g[subsample(len(pts_g), MAX_POINTS)],
+                                              c2w[:3, 3], offset)
+    return out, group
+
+
+def split_frames(frame_centres: dict, dist_m: float, min_frames: int = 1) -> list[list]:
+    """Single-linkage clusters (closer than dist_m) of per-frame centres keyed by (frame, group); keys without
+    a centre, and clusters of fewer than min_frames keys, join the largest cluster."""
+    keys = [f for f, c in frame_centres.items() if c is not None]
+    rest = [f for f, c in frame_centres.items() if c is None]
+    if dist_m <= 0 or len(keys) < 2:
+        return [sorted(keys + rest)]
+    pts = np.stack([frame_centres[f] for f in keys])
+    from scipy.sparse.csgraph import connected_components
+    near = np.linalg.norm(pts[:, None] - pts[None], axis=2) <= dist_m
+    _, lab = connected_components(near, directed=False)
+    groups = sorted((sorted(f for f, g in zip(keys, lab) if g == c) for c in set(lab)), key=lambda g: (-len(g), g[0]))
+    small = [f for g in groups[1:] if len(g) < min_frames for f in g]
+    return [sorted(groups[0] + rest + small)] + [g for g in groups[1:] if len(g) >= min_frames]
+
+
+def local_fruits(views: dict[tuple[int, int], dict], cfg: Config) -> list[LocalFruit]:
+    """Local fruits of every window's slots (`views`: (window, slot) -> {(frame, group): SlotView}), each with a
+    centre: the sphere fitted to its seen surface, or a sphere of the row's median radius behind the seen cap
+    where the free fit is no fruit, or the median of its points."""
+    local, unfitted, radii = [], [], []
+    for (wid, slot), per_frame in sorted(views.items()):
+        centres = {f: (np.median(sv.points, 0) if len(sv.points) else None) for f, sv in per_frame.items()}
+        for p, keys in enumerate(split_frames(centres, 2 * cfg.max_match_distance_m, MIN_SPLIT_FRAMES)):
+            svs = [per_frame[f] for f in keys]
+            n_px = sum(sv.n_px for sv in svs)
+            pts = np.concatenate([sv.points for sv in svs])
+            lf = LocalFruit(wid, slot, p, keys, n_px, int(np.argmax(sum(sv.class_px for sv in svs))), None)
+            if n_px < MIN_SLOT_PX:
+                lf.drop_reason = f"{n_px} px < {MIN_SLOT_PX}"
+            elif len(pts) == 0:
+                lf.drop_reason = "no pixel with valid rendered depth"
+            else:
+                fit = fruit_sphere(pts, cfg.max_fruit_radius_m, min_points=20)
+                lf.median = fit[2] if fit is not None else robust_centre(pts)[0]
+                lf.centre = fit[0] if fit is not None else lf.median
+                if fit is not None:
+                    radii.append(fit[1])
+                else:
+                    unfitted.append((lf, pts, np.average([sv.eye for sv in svs], 0, [len(sv.points) + 1e-9 for sv in svs])))
+            local.append(lf)
+    for lf, pts, eye in unfitted if radii else []:
+        c = sphere_behind(pts, eye, float(np.median(radii)), min_points=20)
+        lf.centre = lf.centre if c is None else c
+    return local
+
+
+def centre_distance(a: LocalFruit, b: LocalFruit) -> float:
+    """The smaller of the distances of two local fruits' centres and of their medians (m)."""
+    d = float(np.linalg.norm(a.centre - b.centre))
+    return d if a.median is None or b.median is None else min(d, float(np.linalg.norm(a.median - b.median)))
+
+
+class MaskOverlaps:
+    """Slot masks of frames several windows rendered ({(window, frame): [H, W] codes, 0 = none}) as joint
+    histograms per (window pair, frame): every mask overlap is a sum over a few histogram entries."""
+
+    def __init__(self, masks: dict[tuple[int, int], np.ndarray]):
+        self.masks, self._joint = masks, {}
+        by_frame: dict[int, list[int]] = defaultdict(list)
+        for w, f in masks:
+            by_frame[f].append(w)
+        self.shared: dict[tuple[int, int], list[int]] = defaultdict(list)
+        for f, ws in sorted(by_frame.items()):
+            for i, wa in enumerate(sorted(ws)):
+                for wb in sorted(ws)[i + 1:]:
+                    self.shared[(wa, wb)].append(f)
+
+    def frames(self, wa: int, wb: int) -> list[int]:
+        """The frames windows wa and wb both rendered."""
+        return self.shared.get((min(wa, wb), max(wa, wb)), [])
+
+    def joint(self, wa: int, wb: int, f: int) -> list[tuple[int, int, int]]:
+        """(code in wa, code in wb, pixels) over frame f's pixels where either window has a slot."""
+        lo, hi = min(wa, wb), max(wa, wb)
+        if (lo, hi, f) not in self._joint:
+            a, b = self.masks[(lo, f)].ravel(), self.masks[(hi, f)].ravel()
+            on = (a != 0) | (b != 0)
+            keys, n = np.unique((a[on].astype(np.int64) << 32) | b[on].astype(np.int64), return_counts=True)
+            self._joint[(lo, hi, f)] = list(zip((keys >> 32).tolist(), (keys & 0xFFFFFFFF).tolist(), n.tolist()))
+        out = self._joint[(lo, hi, f)]
+        return out if wa == lo else [(y, x, n) for x, y, n in out]
+
+    def overlap(self, wa: int, codes_a: dict, wb: int, codes_b: dict) -> tuple[int, int, int]:
+        """(intersection, union, smaller mask) pixels of two windows' masks ({frame: codes}) over shared frames."""
+        inter = union = smaller = 0
+        for f in self.frames(wa, wb):
+            ca, cb = codes_a.get(f, ()), codes_b.get(f, ())
+            n_a = n_b = 0
+            for x, y, n in self.joint(wa, wb, f):
+                n_a, n_b = n_a + n * (x in ca), n_b + n * (y in cb)
+                union += n * (x in ca or y in cb)
+                inter += n * (x in ca and y in cb)
+            smaller += min(n_a, n_b)
+        return inter, union, smaller
+
+
+def frame_codes(lfs: list[LocalFruit]) -> dict[int, set[int]]:
+    """frame -> the slot codes of the local fruits' pixel groups there."""
+    out: dict[int, set[int]] = defaultdict(set)
+    for lf in lfs:
+        for f, g in lf.frames:
+            out[f].add(int(code(lf.slot, g)))
+    return out
+
+
+def pair_cost(a: LocalFruit, b: LocalFruit, overlaps: MaskOverlaps, cfg: Config) -> float:
+    """distance / max_match_distance_m + (1 - mask IoU) of two local fruits of different windows (IoU 0.5 where
+    no shared frame shows them); inf past the gate, or under min_mask_iou. Masks lying inside one another by
+    STRONG_OVERLAP match up to twice the gate (a window that saw a fruit as a sliver centres it poorly)."""
+    if a.centre is None or b.centre is None or centre_distance(a, b) > 2 * cfg.max_match_distance_m:
+        return np.inf
+    dist = centre_distance(a, b)
+    inter, union, smaller = overlaps.overlap(a.window_id, frame_codes([a]), b.window_id, frame_codes([b]))
+    iou = inter / union if union else 0.5
+    if (union and iou < cfg.min_mask_iou) or (
+            dist > cfg.max_match_distance_m and not (smaller and inter / smaller >= STRONG_OVERLAP)):
+        return np.inf
+    return dist / cfg.max_match_distance_m + (1.0 - iou)
+
+
+def candidate_pairs(fruits: list[LocalFruit], overlaps: MaskOverlaps, cfg: Config) -> list[tuple[float, int, int]]:
+    """(cost, i, j) of the Hungarian matches (pair_cost) of every pair of windows."""
+    by_window: dict[int, list[int]] = defaultdict(list)
+    for i, lf in enumerate(fruits):
+        if lf.centre is not None:
+            by_window[lf.window_id].append(i)
+    wids, edges = sorted(by_window), []
+    for a_i, wa in enumerate(wids):
+        for wb in wids[a_i + 1:]:
+            ia, ib = by_window[wa], by_window[wb]
+            ca, cb = np.stack([fruits[i].centre for i in ia]), np.stack([fruits[j].centre for j in ib])
+            near = np.linalg.norm(ca[:, None] - cb[None], axis=2) <= 4 * cfg.max_match_distance_m   # cheap pre-gate
+            cost = np.full(near.shape, np.inf)
+            for r, c in zip(*np.nonzero(near)):
+                cost[r, c] = pair_cost(fruits[ia[r]], fruits[ib[c]], overlaps, cfg)
+            finite = np.isfinite(cost)
+            if finite.any():
+                rows, cols = linear_sum_assignment(np.where(finite, cost, 1e6))
+                edges += [(float(cost[r, c]), ia[r], ib[c]) for r, c in zip(rows, cols) if finite[r, c]]
+    return edges
+
+
+def associate(fruits: list[LocalFruit], masks: dict[tuple[int, int], np.ndarray], cfg: Config) -> list[list[int]]:
+    """Groups of local-fruit indices that are one row fruit: candidate_pairs merged cheapest first where no two
+    local fruits of one window share a frame or lie apart, and every two windows' masks of the group overlap by
+    min_mask_iou. A fruit left alone whose mask lies mostly on one group's masks (and within the gate of it)
+    joins it: a second slot its window painted on that fruit."""
+    overlaps = MaskOverlaps(masks)
+    members = {i: [i] for i in range(len(fruits))}
+    root = list(range(len(fruits)))
+    codes = [frame_codes([lf]) for lf in fruits]
+
+    def compatible(a: list[int], b: list[int]) -> bool:
+        for i in a:
+            for j in b:
+                if fruits[i].window_id == fruits[j].window_id and (
+                        codes[i].keys() & codes[j].keys() or centre_distance(fruits[i], fruits[j]) > cfg.max_match_distance_m):
+                    return False
+        by_w: dict[int, list[LocalFruit]] = defaultdict(list)
+        for i in a + b:
+            by_w[fruits[i].window_id].append(fruits[i])
+        ws = sorted(by_w)
+        for x, wa in enumerate(ws):
+            for wb in ws[x + 1:]:
+                inter, union, _ = overlaps.overlap(wa, frame_codes(by_w[wa]), wb, frame_codes(by_w[wb]))
+                if union and inter / union < cfg.min_mask_iou:
+                    return False
+        return True
+
+    def join(ra: int, rb: int) -> None:
+        for i in members[rb]:
+            root[i] = ra
+        members[ra] += members.pop(rb)
+
+    for _, i, j in sorted(candidate_pairs(fruits, overlaps, cfg)):
+        if root[i] != root[j] and compatible(members[root[i]], members[root[j]]):
+            join(root[i], root[j])
+    owner = {(lf.window_id, f, c): k for k, lf in enumerate(fruits) for f, cs in codes[k].items() for c in cs}
+    for i, lf in enumerate(fruits):
+        if lf.centre is None or len(members.get(i, ())) != 1:
+            continue
+        on, total = defaultdict(int), 0     # group root -> pixels of this fruit's mask on its masks
+        for (wa, wb), fids in overlaps.shared.items():
+            if lf.window_id in (wa, wb):
+                other = wb if lf.window_id == wa else wa
+                for f in fids:
+                    for own, theirs, n in overlaps.joint(lf.window_id, other, f) if f in codes[i] else ():
+                        if own in codes[i][f]:
+                            total += n
+                            k = owner.get((other, f, theirs))
+                            if k is not None and fruits[k].centre is not None:
+                                on[root[k]] += n
+        if on:
+            r, n_on = max(on.items(), key=lambda kv: kv[1])
+            if n_on >= total / 2 and min(centre_distance(lf, fruits[k]) for k in members[r]) <= cfg.max_match_distance_m:
+                join(r, i)
+    return [[i for i in g if fruits[i].centre is not None] for g in members.values()
+            if any(fruits[i].centre is not None for i in g)]
+
+
+def row_fruits(views: dict[tuple[int, int], dict], masks: dict[tuple[int, int], np.ndarray], cfg: Config
+               ) -> tuple[list[LocalFruit], list[list[int]]]:
+    """Local fruits (local_fruits) and the groups of them that are one row fruit (associate), each local fruit
+    given its row fruit's id: ids increase along the row (x, then z, then y)."""
+    local = local_fruits(views, cfg)
+    groups = associate(local, masks, cfg)
+    centre = [np.median(np.stack([local[i].centre for i in g]), 0) for g in groups]
+    order = sorted(range(len(groups)), key=lambda j: (centre[j][0], centre[j][2], centre[j][1]))
+    for fruit_id, j in enumerate(order, 1):
+        for i in groups[j]:
+            local[i].fruit_id = fruit_id
+    return local, groups
+
+
+def slot_table(local: list[LocalFruit]) -> tuple[dict, dict]:
+    """({(window, frame): {slot code: fruit id}}, {window: {fruit id: frames it shows the fruit in}}): how each
+    render's slots map to row fruits, and how well each window saw each fruit (ties: more pixels)."""
+    lut: dict[tuple[int, int], dict[int, int]] = defaultdict(dict)
+    support: dict[int, dict[int, float]] = defaultdict(lambda: defaultdict(float))
+    for lf in local:
+        for f, g in lf.frames:
+            lut[(lf.window_id, f)][int(code(lf.slot, g))] = lf.fruit_id
+        if lf.fruit_id:
+            support[lf.window_id][lf.fruit_id] += len({f for f, _ in lf.frames}) + lf.n_px * 1e-9
+    return lut, support

@@ -1,0 +1,126 @@
+"""Per-frame evidence: for each pixel and each candidate fruit, what the render, the detector and the fruit
+models say. The assignment (rowmap.fusion.assignment) turns it into one id per pixel."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from nerf.config import BASE_PIXELS
+from nerf.surfaces import unproject
+from rowmap.fusion.models import FruitModels
+from rowmap.fusion.settings import Config
+
+BORDER_BAND_PX = 8
+"""reference pixels (320x180 image, scaled with the image): the band along the image edges where the render
+is weakest (a fruit entering the view is painted as leaf or as its neighbour)."""
+BORDER_CONFIDENCE = 0.4
+"""[0, 1]: the render's confidence in the border band."""
+MIN_HIDDEN_PX = 12
+"""reference pixels: fewer stuff pixels on a fruit's seen surface do not lower the render's confidence."""
+
+
+@dataclass
+class Frame:
+    """The inputs of one fused frame."""
+
+    frame_id: int
+    label: np.ndarray    # [H, W] the render's fruit id (render_label); 0 = stuff, -1 = void (a dropped slot)
+    depth: np.ndarray    # [H, W] m: the z-depth that places pixels (sensor where valid, else the render's)
+    segments: np.ndarray | None   # [H, W] detector segment ids (0 = none); None: no detector output
+    k: np.ndarray        # (fx, fy, cx, cy)
+    c2w: np.ndarray      # [4, 4] camera pose in the row frame
+
+
+@dataclass
+class Evidence:
+    """What decides the pixels of one frame: P pixels (those with a depth that a fruit could take), F
+    candidate fruits (column 0 of every [P, F + 1] option array is background)."""
+
+    pixels: np.ndarray      # [P] flat indices into the frame
+    ids: np.ndarray         # [F] candidate fruit ids
+    points: np.ndarray      # [P, 3] world points
+    render: np.ndarray      # [P] option the render paints (0 = background or void)
+    confidence: np.ndarray  # [P] the render's confidence, [0, 1]
+    detector: np.ndarray    # [P] option of the detector segment's fruit: -1 no segment, 0 a segment on no fruit
+    segment: np.ndarray     # [P] detector segment id (0 = none)
+    rel: np.ndarray         # [P, F] distance to the fruit's sphere centre / its radius (nan: no sphere)
+    beyond: np.ndarray      # [P, F] m beyond the sphere's centre along the pixel's ray (nan: no sphere)
+    gap: np.ndarray         # [P, F] m to the fruit's seen surface (inf: farther than margin_m)
+    radius: np.ndarray      # [F] m (nan: no sphere)
+
+
+def render_label(labels: list[np.ndarray], support: list[dict[int, float]]) -> tuple[np.ndarray, np.ndarray]:
+    """([H, W] one render label per pixel, [H, W] the window it came from) from the renders several windows
+    made of a frame (`labels`: fruit ids, 0 stuff, -1 void; the nearest window first; `support`: per window
+    {fruit: how well it saw it}). A fruit's label counts from the window that saw it best of those showing it here; then stuff; then a
+    fruit from another window; ties go to the nearer window. A window that saw a fruit only while it entered
+    its stretch of row renders it smaller, or with a neighbour's id."""
+    best: dict[int, tuple[float, int]] = {}   # among the windows that show the fruit in this frame
+    for j, (s, lab) in enumerate(zip(support, labels)):
+        for f in np.unique(lab[lab > 0]).tolist():
+            if f not in best or s.get(f, 0.0) > best[f][0]:
+                best[f] = (s.get(f, 0.0), j)
+    out, src, prio = labels[0].copy(), np.zeros(labels[0].shape, np.int64), np.full(labels[0].shape, -1)
+    for j, lab in enumerate(labels):
+        is_best = np.zeros(int(max(lab.max(), 0)) + 1, bool)
+        is_best[[f for f, (_, b) in best.items() if b == j and f < len(is_best)]] = True
+        p = np.where(lab > 0, np.where(is_best[np.maximum(lab, 0)], 2, 0), 1)
+        take = p > prio
+        out[take], src[take], prio[take] = lab[take], j, p[take]
+    return out, src
+
+
+def segment_owner(label: np.ndarray, segments: np.ndarray) -> np.ndarray:
+    """[n_segments] the fruit holding most of each detector segment in the render (0: none)."""
+    on = (label > 0) & (segments > 0)
+    owner = np.zeros(int(segments.max()) + 1, np.int64)
+    if on.any():
+        keys, n = np.unique(segments[on] * (int(label.max()) + 1) + label[on], return_counts=True)
+        order = np.argsort(n, kind="stable")   # the largest pair of each segment written last
+        owner[keys[order] // (int(label.max()) + 1)] = keys[order] % (int(label.max()) + 1)
+    return owner
+
+
+def frame_evidence(frame: Frame, models: FruitModels, owners: dict[tuple[int, int], int], cfg: Config) -> Evidence:
+    """The evidence of one frame. Candidates: the fruits the render paints and those whose sphere is in view.
+    The detector segment's fruit: `owners` ((frame, segment) -> fruit, from a split) or the render's
+    (segment_owner). The render's confidence is BORDER_CONFIDENCE in the border band and, on a stuff pixel on
+    a fruit's seen surface, that fruit's render pixels / its hidden surface pixels (at most 1)."""
+    h, w = frame.label.shape
+    boxes = models.in_view((h, w), frame.k, frame.c2w, cfg)
+    ids = np.array(sorted(set(np.unique(frame.label[frame.label > 0]).tolist()) | set(boxes)), np.int64)
+    seg = frame.segments if frame.segments is not None else np.zeros((h, w), np.int64)
+    # a pixel only background can take: no render fruit, no segment, outside every fruit's halo ball
+    v, u = np.nonzero(((frame.label != 0) | (seg > 0)) & (frame.depth > 0))
+    keep = np.zeros((h, w), bool)
+    keep[v, u] = True
+    for f, (v0, v1, u0, u1) in boxes.items():
+        bv, bu = np.nonzero((frame.depth[v0:v1, u0:u1] > 0) & ~keep[v0:v1, u0:u1])
+        p = unproject(frame.depth, frame.k, frame.c2w, bv + v0, bu + u0)
+        m = models[f]
+        near = np.linalg.norm(p - m.centre, axis=1) <= m.radius * cfg.halo_factor + cfg.margin_m
+        keep[bv[near] + v0, bu[near] + u0] = True
+    v, u = np.nonzero(keep)
+    points = unproject(frame.depth, frame.k, frame.c2w, v, u)
+    rel, beyond, gap = models.query(ids.tolist(), points, frame.c2w[:3, 3], cfg.margin_m)
+    radii = models.spheres(ids.tolist())[1]
+    owner = segment_owner(frame.label, seg)
+    for (f, s), g in owners.items():
+        if f == frame.frame_id and s < len(owner):
+            owner[s] = g
+    column = np.zeros(max(int(ids.max(initial=0)), int(frame.label.max()), int(owner.max())) + 1, np.int64)
+    column[ids] = np.arange(1, len(ids) + 1)   # fruit id -> its option (0: not a candidate)
+    render = column[np.maximum(frame.label[v, u], 0)]
+    segment = seg[v, u]
+    detector = np.where(segment > 0, column[owner[segment]], -1)
+    confidence = np.ones(len(v))
+    band = int(np.ceil(BORDER_BAND_PX * np.sqrt(max(1.0, h * w / BASE_PIXELS))))
+    confidence[(v < band) | (v >= h - band) | (u < band) | (u >= w - band)] = BORDER_CONFIDENCE
+    hidden = (render == 0)[:, None] & (gap <= cfg.margin_m) & ~(beyond > cfg.margin_m)   # [P, F]
+    n_hidden = hidden.sum(0)
+    shown = np.bincount(render, minlength=len(ids) + 1)[1:]
+    cover = np.where(n_hidden >= MIN_HIDDEN_PX * max(1.0, h * w / BASE_PIXELS), shown / np.maximum(n_hidden, 1), 1.0)
+    cover = np.minimum(cover, 1.0)
+    confidence = np.minimum(confidence, np.where(hidden, cover[None], 1.0).min(1, initial=1.0))
+    return Evidence(v * w + u, ids, points, render, confidence, detector, segment, rel, beyond, gap, radii)

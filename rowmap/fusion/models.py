@@ -1,0 +1,212 @@
+"""Fruit models: per row fruit its sphere, its seen surface and its detector support.
+
+`fit_models` builds them from the association; `FruitModels.query` answers, for 3D points of one frame, how
+far each point lies from each fruit's shape, surface and centre (the evidence); `update` refits them from one
+round's assignment: the points each fruit was given grow its seen surface (and fit a sphere where the render's
+points did not), and a fruit whose detector segments form clusters seen together is split."""
+from __future__ import annotations
+
+from collections import defaultdict
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.cluster.hierarchy import fcluster, linkage
+from scipy.spatial import cKDTree
+
+from nerf.panoptic.complete import sphere_boxes
+from nerf.surfaces import fruit_sphere, robust_centre
+from rowmap.fusion.association import MIN_SPLIT_FRAMES, LocalFruit
+from rowmap.fusion.settings import Config
+from rowmap.geometry import subsample
+
+MIN_SPHERE_POINTS = 20
+"""points: fewer fit no sphere."""
+MAX_FIT_POINTS = 3000
+"""points a sphere is fitted to (evenly subsampled)."""
+
+
+@dataclass
+class FruitModel:
+    """One row fruit: its seen surface points (where the sensor measures them) and the sphere they fit."""
+
+    class_id: int
+    points: np.ndarray                 # [N, 3] seen surface points
+    centre: np.ndarray | None = None   # [3] sphere centre; None: no plausible sphere
+    radius: float = np.nan
+    surface: cKDTree | None = None     # the points inside the sphere, one per margin_m / 2 cube
+
+    def refit(self, cfg: Config, keep_sphere: bool = False) -> "FruitModel":
+        """The sphere of its points (kept where none fits, or where it has one and keep_sphere) and the seen
+        surface: the points inside the sphere."""
+        fit = None
+        if (self.centre is None or not keep_sphere) and len(self.points) >= MIN_SPHERE_POINTS:
+            fit = fruit_sphere(self.points[subsample(len(self.points), MAX_FIT_POINTS)], cfg.max_fruit_radius_m)
+        if fit is not None:
+            self.centre, self.radius = fit[0], float(fit[1])
+        if self.centre is not None:
+            pts = self.points[np.linalg.norm(self.points - self.centre, axis=1) <= self.radius]
+            pts = pts[np.unique(np.floor(pts / (cfg.margin_m / 2)).astype(np.int64), axis=0, return_index=True)[1]]
+            self.surface = cKDTree(pts) if len(pts) else None
+        return self
+
+
+def dot3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """[P, F] dot products of points a [P, 3] and b [F, 3], elementwise (a BLAS matmul of this shape is slower,
+    and much slower on a busy machine)."""
+    return a[:, :1] * b[:, 0] + a[:, 1:2] * b[:, 1] + a[:, 2:3] * b[:, 2]
+
+
+class FruitModels(dict):
+    """{fruit id: FruitModel}, with the query one frame's evidence needs."""
+
+    def in_view(self, hw: tuple[int, int], k: np.ndarray, c2w: np.ndarray, cfg: Config) -> dict[int, tuple]:
+        """{fruit id: image box (v0, v1, u0, u1)} of the fruits whose sphere, widened to the halo
+        (halo_factor x radius + margin_m), meets the image."""
+        ids = [f for f, m in self.items() if m.centre is not None]
+        if not ids:
+            return {}
+        boxes = sphere_boxes(hw, k, c2w, np.stack([self[f].centre for f in ids]),
+                             np.array([self[f].radius * cfg.halo_factor + cfg.margin_m for f in ids]))
+        full = (0, hw[0], 0, hw[1])
+        return {f: full if b is None else b for f, b in zip(ids, boxes) if b is None or (b[0] < b[1] and b[2] < b[3])}
+
+    def spheres(self, ids: list[int]) -> tuple[np.ndarray, np.ndarray]:
+        """(centres [F, 3], radii [F]) of fruits `ids`, nan for those without a sphere."""
+        centres = np.array([self[f].centre if self[f].centre is not None else [np.nan] * 3 for f in ids]).reshape(-1, 3)
+        return centres, np.array([self[f].radius for f in ids], np.float64)
+
+    def query(self, ids: list[int], points: np.ndarray, eye: np.ndarray, margin_m: float
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """For points [P, 3] seen from `eye` and fruits `ids` [F]: (distance to the sphere's centre / radius,
+        distance beyond the centre along the point's ray in m, distance to the seen surface in m), each [P, F];
+        nan where a fruit has no sphere, inf where the surface is farther than margin_m or missing."""
+        centres, radii = self.spheres(ids)
+        sq = (points ** 2).sum(1)[:, None] - 2 * dot3(points, centres) + (centres ** 2).sum(1)[None]
+        rel = np.sqrt(np.maximum(sq, 0.0)) / radii
+        ray = points - eye
+        dist = np.linalg.norm(ray, axis=1, keepdims=True)
+        beyond = dist - dot3(ray / dist, centres - eye)
+        gap = np.full(rel.shape, np.inf)
+        for j, f in enumerate(ids):
+            near = np.flatnonzero(rel[:, j] <= 1.0 + 2 * margin_m / radii[j])
+            if self[f].surface is not None and len(near):
+                gap[near, j] = self[f].surface.query(points[near], distance_upper_bound=margin_m)[0]
+        return rel, beyond, gap
+
+
+def fit_models(groups: list[list[int]], local: list[LocalFruit], views: dict, cfg: Config) -> FruitModels:
+    """The model of each row fruit (`groups` of `local` fruits carrying their fruit id; `views` their slot
+    views): the rendered points of all its views, moved by the median render -> sensor offset where that
+    offset exceeds what the halo tolerates ((halo_factor - 1) x radius + margin_m): a window that saw a fruit
+    in few frames can render it centimetres off where the sensor measures it."""
+    out = FruitModels()
+    for g in groups:
+        svs = [views[(local[i].window_id, local[i].slot)][key] for i in g for key in local[i].frames]
+        px = defaultdict(int)
+        for i in g:
+            px[local[i].class_id] += local[i].n_px
+        m = FruitModel(max(px, key=px.get), np.concatenate([sv.points for sv in svs])).refit(cfg)
+        offsets = [sv.sensor_offset for sv in svs if sv.sensor_offset is not None]
+        if offsets and m.centre is not None:
+            off = np.median(np.stack(offsets), 0)
+            if np.linalg.norm(off) > (cfg.halo_factor - 1) * m.radius + cfg.margin_m:
+                m.points, m.centre = m.points + off, m.centre + off
+                m.refit(cfg)
+        out[local[g[0]].fruit_id] = m
+    return out
+
+
+def detector_clusters(views: list[tuple], ball: tuple | None, cfg: Config) -> tuple[np.ndarray, list[np.ndarray]]:
+    """The fruits one row fruit holds by its detector segments. `views`: (frame, segment, pixels, centre [3],
+    points) of the segments given to it. Centres closer than detector_split_m link (single linkage); two
+    clusters are two fruits where both are seen in MIN_SPLIT_FRAMES frames and together in as many, where
+    they share a frame and the smaller lies off the fruit's sphere `ball` (centre, radius; None: no sphere),
+    or where one lies off the sphere beside the largest. Returns (cluster of each view, -1 none; centres, the
+    cluster with the most pixels first), or (all -1, []) for one fruit."""
+    labels = np.full(len(views), -1)
+    if cfg.detector_split_m <= 0 or len(views) < 2:
+        return labels, []
+    pts = np.stack([v[3] for v in views])
+    raw = fcluster(linkage(pts, "single"), cfg.detector_split_m, criterion="distance")
+    frames_of, px = defaultdict(set), defaultdict(int)
+    for (f, _, n, *_), c in zip(views, raw):
+        frames_of[c].add(f)
+        px[c] += n
+    lasting = {c for c, fs in frames_of.items() if len(fs) >= MIN_SPLIT_FRAMES}
+    off = {c: None if ball is None else bool(np.linalg.norm(np.median(pts[raw == c], 0) - ball[0]) > ball[1] + cfg.margin_m)
+           for c in frames_of}
+    largest = max(frames_of, key=px.get)
+    together = set()
+    for a in frames_of:
+        for b in frames_of:
+            shared = len(frames_of[a] & frames_of[b]) if a < b else 0
+            if a < b and ((a in lasting and b in lasting and shared >= MIN_SPLIT_FRAMES)
+                          or (shared and off[min(a, b, key=px.get)] is not False)
+                          or (largest in (a, b) and off[a if b == largest else b] is True)):
+                together |= {a, b}
+    if not together:
+        return labels, []
+    order = sorted(together, key=lambda c: -px[c])
+    rank = {c: i for i, c in enumerate(order)}
+    return np.array([rank.get(c, -1) for c in raw]), [np.median(pts[raw == c], 0) for c in order]
+
+
+def split(models: FruitModels, fruit: int, views: list[tuple], cfg: Config) -> dict[tuple[int, int], int]:
+    """Split `fruit` by its detector segments (detector_clusters): cluster 0 keeps the id, each other cluster
+    joins the fruit whose centre lies within max_match_distance_m (or inside its sphere), else is a new fruit.
+    The clusters' models are fitted to their segments' points. Returns {(frame, segment): fruit id}."""
+    m = models[fruit]
+    labels, centres = detector_clusters(views, None if m.centre is None else (m.centre, m.radius), cfg)
+    if not centres:
+        return {}
+    ids = [fruit]
+    for j in range(1, len(centres)):
+        near = [(float(np.linalg.norm(o.centre - centres[j])), g) for g, o in models.items()
+                if g not in ids and o.centre is not None and np.linalg.norm(o.centre - centres[j])
+                <= max(cfg.max_match_distance_m, o.radius + cfg.margin_m)]
+        ids.append(min(near)[1] if near else max(models) + 1)
+        if not near:
+            models[ids[-1]] = FruitModel(m.class_id, np.zeros((0, 3)))
+    for j, g in enumerate(ids):
+        pts = np.concatenate([v[4] for v, lab in zip(views, labels) if lab == j])
+        if j == 0 or models[g].centre is None:
+            models[g] = FruitModel(m.class_id, pts).refit(cfg)
+        else:
+            models[g].points = np.concatenate([models[g].points, pts])
+    return {(v[0], v[1]): ids[lab] for v, lab in zip(views, labels) if lab >= 0}
+
+
+def update(models: FruitModels, grown: dict[int, list[np.ndarray]], seg_views: dict[int, list[tuple]],
+           cfg: Config) -> tuple[FruitModels, dict[tuple[int, int], int]]:
+    """Refit the models after a round: each fruit's seen surface grows by the points it was given (`grown`),
+    and the fruits whose detector segments (`seg_views`) show several fruits are split. Returns the models and
+    {(frame, segment): fruit id} of the split fruits' segments (the detector evidence of the next round)."""
+    out = FruitModels()
+    for f, m in models.items():
+        pts = np.concatenate([m.points, *grown.get(f, [])]) if grown.get(f) else m.points
+        out[f] = FruitModel(m.class_id, pts, m.centre, m.radius).refit(cfg, keep_sphere=True)
+    owners = {}
+    for f, views in sorted(seg_views.items()):
+        if f in out:
+            owners.update(split(out, f, views, cfg))
+    return out, owners
+
+
+def segment_views(fruit: np.ndarray, segments: np.ndarray, points: np.ndarray, min_px: int) -> list[tuple]:
+    """(fruit id, segment id, pixels, centre [3], points [<=400, 3]) of the detector segments of one frame that
+    lie mostly on fruits, each given to the fruit holding most of it (at least min_px of its pixels). `fruit`,
+    `segments` [P]: the assigned fruit and segment of pixels with 3D points [P, 3]."""
+    on = (fruit > 0) & (segments > 0)
+    size = np.bincount(segments, minlength=1)
+    covered = np.bincount(segments[on], minlength=len(size))
+    key = fruit[on].astype(np.int64) * len(size) + segments[on]
+    keys, inverse, n = np.unique(key, return_inverse=True, return_counts=True)
+    out, taken = [], set()
+    for j in np.argsort(-n, kind="stable"):
+        f, s = divmod(int(keys[j]), len(size))
+        if n[j] < min_px or s in taken or 2 * covered[s] <= size[s]:
+            continue
+        taken.add(s)
+        pts = points[on][inverse == j]
+        out.append((f, s, int(n[j]), robust_centre(pts)[0], pts[:: max(1, len(pts) // 400)]))
+    return out

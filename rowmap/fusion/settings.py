@@ -1,0 +1,48 @@
+"""The fusion's settings (panoptic_fusion's Config) and the names of the cost terms."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+TERMS = ("render", "detector", "shape", "surface", "order")
+"""The cost terms of the per-pixel assignment (rowmap.fusion.assignment); docs/fusion.md has their table."""
+
+
+@dataclass(frozen=True)
+class Config:
+    max_match_distance_m: float = 0.04
+    """metres, > 0: two windows' slots are one fruit only if their centres lie closer (about half a fruit diameter)."""
+    min_mask_iou: float = 0.3
+    """[0, 1]: two windows' masks of one fruit must overlap this much on the frames both rendered."""
+    group_gap_m: float = 0.03
+    """metres, >= 0: a slot's pixels in a frame split into groups at 3D gaps wider than this (0 = never)."""
+    max_fruit_radius_m: float = 0.07
+    """metres, > 0: a fitted sphere wider than this is no fruit model (about 1.5 x the crop's largest radius)."""
+    margin_m: float = 0.01
+    """metres, > 0: the depth error of a fruit model; a point this close to a fruit's surface lies on it."""
+    halo_factor: float = 1.25
+    """multiple of a fruit's radius, >= 1: a point this far from its centre (+ margin_m) costs the fruit fully."""
+    detector_split_m: float = 0.03
+    """metres, >= 0: a fruit's detector segments in clusters farther apart than this are two fruits (0 = never)."""
+    refine_rounds: int = 1
+    """rounds, 0-3: assign every frame, refit the fruit models (splits, seen surfaces), assign again."""
+    terms_off: tuple[str, ...] = ()
+    """cost terms switched off (names of TERMS), for `pag bench fusion_terms`; () = every term on."""
+    align_windows: bool = True
+    """bring every window into the first window's frame through the frames they share (off: own frames)."""
+
+    def __post_init__(self) -> None:
+        for name in ("max_match_distance_m", "max_fruit_radius_m", "margin_m"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"panoptic_fusion.{name} must be > 0, got {getattr(self, name)}")
+        if not 0.0 <= self.min_mask_iou <= 1.0:
+            raise ValueError(f"panoptic_fusion.min_mask_iou must be in [0, 1], got {self.min_mask_iou}")
+        for name in ("group_gap_m", "detector_split_m"):
+            if not getattr(self, name) >= 0:
+                raise ValueError(f"panoptic_fusion.{name} must be >= 0, got {getattr(self, name)}")
+        if not self.halo_factor >= 1:
+            raise ValueError(f"panoptic_fusion.halo_factor must be >= 1, got {self.halo_factor}")
+        if self.refine_rounds not in range(4):
+            raise ValueError(f"panoptic_fusion.refine_rounds must be 0-3, got {self.refine_rounds}")
+        unknown = sorted(set(self.terms_off) - set(TERMS))
+        if unknown:
+            raise ValueError(f"panoptic_fusion.terms_off: unknown terms {unknown}; terms: {list(TERMS)}")

@@ -1,0 +1,145 @@
+"""rowmap.fusion on small synthetic frames: spheres in front of a camera at the origin (looking along +z), the
+render's labels perturbed the way NeRF renders fail, the fused ids checked against the truth."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from nerf.surfaces import unproject
+from rowmap.fusion import Config, Frame, FruitModel, FruitModels, frame_evidence, fused_label, render_label, terms
+
+K = np.array([200.0, 200.0, 48.0, 32.0])   # fx, fy, cx, cy of a 96 x 64 image
+HW = (64, 96)
+R = 0.03                                    # fruit radius, m
+BACKGROUND_M = 1.5
+
+
+def scene(centres: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """(z-depth [H, W], index of the sphere each pixel sees, -1 = background) of spheres of radius R."""
+    v, u = np.mgrid[0:HW[0], 0:HW[1]]
+    d = np.stack([(u + 0.5 - K[2]) / K[0], (v + 0.5 - K[3]) / K[1], np.ones(HW)], -1)   # rays with z = 1
+    depth, who = np.full(HW, BACKGROUND_M), np.full(HW, -1)
+    for i, c in enumerate(centres):
+        a, b, cc = (d ** 2).sum(-1), -2 * (d @ c), c @ c - R * R
+        disc = b * b - 4 * a * cc
+        t = np.where(disc >= 0, (-b - np.sqrt(np.maximum(disc, 0))) / (2 * a), np.inf)
+        nearer = t < depth
+        depth, who = np.where(nearer, t, depth), np.where(nearer, i, who)
+    return depth, who
+
+
+def model(centre: np.ndarray, cfg: Config) -> FruitModel:
+    """A fruit model from points on the half of its sphere facing the camera (as its windows saw it)."""
+    rng = np.random.default_rng(0)
+    d = rng.normal(size=(3000, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    pts = centre + R * d
+    front = ((pts - centre) * -centre).sum(1) > 0
+    return FruitModel(class_id=2, points=pts[front]).refit(cfg)
+
+
+def fuse(centres: list[np.ndarray], label: np.ndarray, depth: np.ndarray, segments: np.ndarray | None = None,
+         cfg: Config | None = None) -> np.ndarray:
+    """Fused ids of one frame whose render paints `label` (fruit i has id i + 1) over the scene's depth."""
+    cfg = cfg or Config()
+    models = FruitModels({i + 1: model(c, cfg) for i, c in enumerate(centres)})
+    frame = Frame(frame_id=0, label=label, depth=depth, segments=segments, k=K, c2w=np.eye(4))
+    return fused_label(frame=frame, models=models, owners={}, cfg=cfg)[0]
+
+
+def test_two_touching_fruits_keep_their_own_pixels_where_the_render_bleeds_one_over_the_other():
+    centres = [np.array([-0.03, 0.0, 0.5]), np.array([0.03, 0.0, 0.5])]
+    depth, who = scene(centres)
+    truth = who + 1
+    label = truth.copy()
+    cols = np.nonzero((who == 0).any(0))[0]
+    bled = (who == 0) & (np.arange(HW[1])[None] >= cols.max() - 7)   # 8 columns of fruit 1 painted as fruit 2
+    label[bled] = 2
+    fused = fuse(centres, label, depth)
+    v, u = np.nonzero(bled)
+    off_b = np.linalg.norm(unproject(depth, K, np.eye(4), v, u) - centres[1], axis=1) > R + 2 * Config().margin_m
+    assert off_b.sum() > 20          # near both spheres (shape cost rising from radius + margin) it may go either way
+    assert (fused[v[off_b], u[off_b]] == 1).mean() > 0.9
+    assert (fused[who >= 0] == truth[who >= 0]).mean() > 0.95 > (label[who >= 0] == truth[who >= 0]).mean()
+
+
+def test_a_fruit_entering_at_the_image_border_takes_its_sliver_from_its_seen_surface():
+    # fruit 2 enters at the left edge; the render paints its sliver as leaf
+    centres = [np.array([0.0, 0.0, 0.5]), np.array([-0.135, 0.0, 0.5])]
+    depth, who = scene(centres)
+    sliver = who == 1
+    assert 0 < sliver.sum() and np.nonzero(sliver)[1].max() < 8
+    label = np.where(who == 0, 1, 0)
+    fused = fuse(centres, label, depth)
+    assert (fused[sliver] == 2).mean() > 0.8
+    assert (fused[who == 0] == 1).all() and (fused[who < 0] == 0).all()
+    # inside the image (no border band) a fruit the render shows well keeps its outline as painted
+    inner = [np.array([0.0, 0.0, 0.5]), np.array([-0.06, 0.0, 0.5])]
+    depth, who = scene(inner)
+    label = np.where(who >= 0, who + 1, 0)
+    edge = (who == 1) & (np.arange(HW[1])[None] < np.nonzero(who == 1)[1].min() + 2)
+    label[edge] = 0
+    fused = fuse(inner, label, depth)
+    assert (fused[edge] == 0).all()
+
+
+def test_a_sliver_of_a_fruit_behind_a_neighbour_goes_to_the_fruit_behind():
+    front, back = np.array([0.0, 0.0, 0.45]), np.array([0.045, 0.0, 0.55])
+    depth, who = scene([front, back])
+    sliver = who == 1
+    assert sliver.sum() > 20
+    label = np.where(who >= 0, 1, 0)            # the render paints the fruit behind with the front fruit's id
+    fused = fuse([front, back], label, depth)
+    assert (fused[sliver] == 2).mean() > 0.9
+    assert (fused[who == 0] == 1).all()
+
+
+def test_a_detector_segment_merging_two_fruits_does_not_merge_their_ids():
+    centres = [np.array([-0.03, 0.0, 0.5]), np.array([0.03, 0.0, 0.5])]
+    depth, who = scene(centres)
+    label = who + 1
+    merged = np.where(who >= 0, 7, 0)           # one detector segment over both fruits
+    fused = fuse(centres, label, depth, segments=merged)
+    assert (fused == label).all()
+
+
+def test_the_halo_a_render_paints_around_a_fruit_is_background_unless_the_detector_shows_the_fruit_there():
+    centre = np.array([0.0, 0.0, 0.5])
+    depth, who = scene([centre])
+    v, u = np.nonzero(who == 0)
+    yy, xx = np.mgrid[0:HW[0], 0:HW[1]]
+    r_px = (u.max() - u.min()) / 2
+    halo = (np.hypot(yy - v.mean(), xx - u.mean()) < r_px + 4) & (who < 0)
+    label = np.where((who == 0) | halo, 1, 0)
+    fused = fuse([centre], label, depth)
+    assert (fused[halo] == 0).all() and (fused[who == 0] == 1).all()
+    # a halo on the fruit's own surface (the sensor sees the fruit there) is kept where the detector shows it
+    depth_near = np.where(halo, depth[who == 0].max(), depth)
+    fused = fuse([centre], label, depth_near, segments=np.where(label > 0, 3, 0))
+    assert (fused[halo] == 1).mean() > 0.5
+
+
+def test_each_term_can_be_switched_off_and_with_every_term_off_but_the_render_the_render_is_kept():
+    centres = [np.array([-0.03, 0.0, 0.5]), np.array([0.03, 0.0, 0.5])]
+    depth, who = scene(centres)
+    label = np.where(who >= 0, 1, 0)            # one id over both fruits
+    cfg = Config(terms_off=("detector", "shape", "surface", "order"))
+    assert (fuse(centres, label, depth, cfg=cfg) == label).all()
+    models = FruitModels({i + 1: model(c, Config()) for i, c in enumerate(centres)})
+    ev = frame_evidence(frame=Frame(0, label, depth, None, K, np.eye(4)), models=models, owners={}, cfg=Config())
+    for name, term in terms(ev, Config()).items():
+        assert term.shape == (len(ev.pixels), len(ev.ids) + 1) and 0 <= term.min() and term.max() <= 1, name
+    with pytest.raises(ValueError, match="unknown terms"):
+        Config(terms_off=("colour",))
+
+
+def test_a_frame_several_windows_rendered_takes_each_fruit_from_the_window_that_saw_it_best():
+    near, other = np.zeros((4, 6), np.int64), np.zeros((4, 6), np.int64)
+    near[:, 0:2] = 5          # fruit 5: a sliver in the nearest window, which saw it in 2 frames
+    other[:, 0:4] = 5         # ... whole in the other window, which saw it in 9
+    near[:, 4:6] = 6          # fruit 6: only the nearest window shows it
+    label, src = render_label(labels=[near, other], support=[{5: 2, 6: 4}, {5: 9}])
+    assert (label[:, 0:4] == 5).all() and (src[:, 0:4] == 1).all()
+    assert (label[:, 4:6] == 6).all() and (src[:, 4:6] == 0).all()
+    one, src1 = render_label(labels=[near], support=[{5: 2, 6: 4}])
+    assert (one == near).all() and (src1 == 0).all()
