@@ -16,7 +16,7 @@ from pipeline.classes import THING_IDS, VOID
 from pipeline.images import ImageError, write_png
 from pipeline.stage import StageContext
 from rowmap.detections import dropped_segments, fruit_segments
-from rowmap.fusion import Config, Frame, fit_models, fuse, render_label, slot_views
+from rowmap.fusion import Config, Frame, default_threads, fit_models, fuse, in_order, render_label, slot_views
 from rowmap.fusion.association import code, row_fruits, slot_table
 from rowmap.geometry import POSE_COLS, window_alignments, with_sensor_depth
 from rowmap.renders import PANOPTIC_KINDS, Renders, encode
@@ -66,20 +66,28 @@ def intrinsics(fr) -> np.ndarray:
 def read_slots(views: pd.DataFrame, frames: pd.DataFrame, renders: Renders, shared: set[int], cfg: Config,
                ctx: StageContext) -> tuple[dict, dict, dict]:
     """Every rendered frame's slot views ((window, slot) -> {(frame, group): SlotView}), the slot-code masks of
-    the frames several windows rendered ((window, frame) -> [H, W]) and each render's group map."""
-    per_slot: dict[tuple[int, int], dict] = defaultdict(dict)
-    masks, groups = {}, {}
-    for r in ctx.progress(views.itertuples(index=False), "read renders", total=len(views)):
+    the frames several windows rendered ((window, frame) -> [H, W]) and each render's group map. The renders
+    are read and cut into slots on every core (in_order), in views' order."""
+    def read(r) -> tuple[int, int, dict, np.ndarray, np.ndarray | None]:
         wid, fid = int(r.window_id), int(r.frame_id)
         fr = frames.loc[fid]
         sem, inst, depth = (renders.read(wid, fid, k, (int(fr.height), int(fr.width))) for k in PANOPTIC_KINDS)
         sensor = with_sensor_depth(np.zeros_like(depth), ctx.abspath(fr.depth_path), fr.depth_scale_m)
         found, group = slot_views(sem, inst, depth, sensor, intrinsics(fr), r.c2w, list(THING_IDS), cfg)
+        mask = None
+        if fid in shared:
+            mask = np.where(np.isin(sem, THING_IDS) & (inst > 0), code(inst, group), 0).astype(np.int32)
+        return wid, fid, found, group, mask
+
+    per_slot: dict[tuple[int, int], dict] = defaultdict(dict)
+    masks, groups = {}, {}
+    read_all = in_order(read, views.itertuples(index=False), default_threads())
+    for wid, fid, found, group, mask in ctx.progress(read_all, "read renders", total=len(views)):
         for (slot, g), sv in found.items():
             per_slot[(wid, slot)][(fid, g)] = sv
         groups[(wid, fid)] = group
-        if fid in shared:
-            masks[(wid, fid)] = np.where(np.isin(sem, THING_IDS) & (inst > 0), code(inst, group), 0).astype(np.int32)
+        if mask is not None:
+            masks[(wid, fid)] = mask
     return per_slot, masks, groups
 
 

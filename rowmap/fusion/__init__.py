@@ -14,9 +14,9 @@ from rowmap.fusion.assignment import WEIGHTS, assign, cost, terms
 from rowmap.fusion.association import associate, local_fruits, slot_views
 from rowmap.fusion.evidence import Evidence, Frame, frame_evidence, render_label
 from rowmap.fusion.models import FruitModel, FruitModels, fit_models, update
-from rowmap.fusion.rounds import fuse, fused_label
+from rowmap.fusion.rounds import default_threads, fuse, fused_label, in_order
 from rowmap.fusion.settings import TERMS, Config
 
 __all__ = ["WEIGHTS", "TERMS", "Config", "Evidence", "Frame", "FruitModel", "FruitModels", "assign", "associate",
-           "cost", "fit_models", "frame_evidence", "fuse", "fused_label", "local_fruits", "render_label", "slot_views",
-           "terms", "update"]
+           "cost", "default_threads", "fit_models", "frame_evidence", "fuse", "fused_label", "in_order",
+           "local_fruits", "render_label", "slot_views", "terms", "update"]

@@ -1,9 +1,16 @@
 """Rounds: assign every frame, refit the fruit models from what they were given, assign again; the last
-round's assignment is the fused frame (written once, by the caller)."""
+round's assignment is the fused frame (written once, by the caller).
+
+Frames are independent within a round (the models change only between rounds), so they are worked on by
+several threads; results come back in frame order, so the output does not depend on the thread count."""
 from __future__ import annotations
 
-from collections import defaultdict
+import os
+from collections import defaultdict, deque
 from collections.abc import Callable, Iterable, Iterator
+from concurrent.futures import ThreadPoolExecutor
+from itertools import islice
+from typing import Any
 
 import numpy as np
 
@@ -26,28 +33,58 @@ def fused_label(frame: Frame, models: FruitModels, owners: dict, cfg: Config) ->
     return out, ev, ids
 
 
+def in_order(fn: Callable[[Any], Any], items: Iterable, threads: int) -> Iterator[Any]:
+    """fn(item) for every item, in the items' order, computed by `threads` threads (1: in this thread) at most
+    2 x threads items ahead of the consumer, so only a few frames' arrays are held at once."""
+    if threads <= 1:
+        yield from map(fn, items)
+        return
+    it = iter(items)
+    with ThreadPoolExecutor(threads, thread_name_prefix="fusion") as pool:
+        ahead = deque(pool.submit(fn, x) for x in islice(it, 2 * threads))
+        while ahead:
+            done = ahead.popleft().result()
+            ahead.extend(pool.submit(fn, x) for x in islice(it, 1))
+            yield done
+
+
+def default_threads() -> int:
+    """The cores this process may run on (the fusion's thread count)."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+
+
+def round_views(frame: Frame, models: FruitModels, owners: dict, cfg: Config) -> tuple[list, list]:
+    """What one frame of a round gives the refit: [(fruit, its pixels' points (MAX_POINTS at most))] and the
+    frame's detector segments mostly on one fruit [(fruit, frame, segment, ...)] (segment_views)."""
+    _, ev, ids = fused_label(frame, models, owners, cfg)
+    order = np.argsort(ids, kind="stable")
+    starts = np.flatnonzero(np.r_[True, ids[order][1:] != ids[order][:-1]]) if len(ids) else []
+    grown = [(int(ids[order[s0]]), ev.points[order[s0:s1][subsample(s1 - s0, MAX_POINTS)]])
+             for s0, s1 in zip(starts, np.r_[starts[1:], len(ids)] if len(ids) else []) if ids[order[s0]] > 0]
+    segs = []
+    if frame.segments is not None and cfg.detector_split_m > 0:
+        segs = [(f, frame.frame_id, *view) for f, *view in segment_views(ids, ev.segment, ev.points, MIN_GROUP_PX)]
+    return grown, segs
+
+
 def fuse(frame_ids: Iterable[int], load: Callable[[int], Frame], models: FruitModels, cfg: Config,
-         progress: Callable = lambda it, label, total: it) -> Iterator[tuple[int, np.ndarray, FruitModels]]:
-    """(frame id, fused label [H, W], the final models) per frame of the last round. Each round before it
-    collects, per fruit, the points of the pixels it was given (MAX_POINTS per frame) and its detector segments
-    (segment_views), and refits the models with them (rowmap.fusion.models.update)."""
-    frame_ids, owners = list(frame_ids), {}
+         progress: Callable = lambda it, label, total: it, threads: int = 0
+         ) -> Iterator[tuple[int, np.ndarray, FruitModels]]:
+    """(frame id, fused label [H, W], the final models) per frame of the last round, in frame order. Each round
+    before it collects, per fruit, the points of the pixels it was given and its detector segments
+    (round_views), and refits the models with them (rowmap.fusion.models.update). `threads`: frames worked on
+    at once (0 = every core of this process); `load` must be safe to call from several threads."""
+    frame_ids, owners, threads = list(frame_ids), {}, threads or default_threads()
     for r in range(cfg.refine_rounds):
         grown: dict[int, list[np.ndarray]] = defaultdict(list)
         seg_views: dict[int, list[tuple]] = defaultdict(list)
-        for fid in progress(frame_ids, f"fusion round {r + 1}", len(frame_ids)):
-            frame = load(fid)
-            _, ev, ids = fused_label(frame, models, owners, cfg)
-            order = np.argsort(ids, kind="stable")
-            starts = np.flatnonzero(np.r_[True, ids[order][1:] != ids[order][:-1]]) if len(ids) else []
-            for s0, s1 in zip(starts, np.r_[starts[1:], len(ids)] if len(ids) else []):
-                f = int(ids[order[s0]])
-                if f > 0:
-                    grown[f].append(ev.points[order[s0:s1][subsample(s1 - s0, MAX_POINTS)]])
-            if frame.segments is not None and cfg.detector_split_m > 0:
-                for f, *view in segment_views(ids, ev.segment, ev.points, MIN_GROUP_PX):
-                    seg_views[f].append((fid, *view))
+        views = in_order(lambda fid: round_views(load(fid), models, owners, cfg), frame_ids, threads)
+        for points, segs in progress(views, f"fusion round {r + 1}", len(frame_ids)):
+            for f, pts in points:
+                grown[f].append(pts)
+            for f, *view in segs:
+                seg_views[f].append(tuple(view))
         models, owners = update(models, grown, seg_views, cfg)
-    for fid in progress(frame_ids, "write fused frames", len(frame_ids)):
-        out, _, _ = fused_label(load(fid), models, owners, cfg)
+    fused = in_order(lambda fid: (fid, fused_label(load(fid), models, owners, cfg)[0]), frame_ids, threads)
+    for fid, out in progress(fused, "write fused frames", len(frame_ids)):
         yield fid, out, models
