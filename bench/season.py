@@ -56,7 +56,7 @@ def oracle_row(data_root: Path, seq: str, rng: np.random.Generator) -> None:
     """Write fruits.parquet and panoptic_frames.parquet of an ingested synthetic row from its ground truth:
     each fruit placed in the row's odometry frame through the frame whose true camera x is nearest it, plus
     ORACLE_NOISE."""
-    from stages.evaluate import gt_poses_by_frame
+    from rowmap.ground_truth import gt_poses_by_frame
 
     frames = io.read_table(dataset("frames").path(data_root, seq), "frames")
     gt = data_root / "raw" / seq / "gt"

@@ -21,7 +21,6 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
-import pyarrow as pa
 import yaml
 
 import schemas
@@ -101,7 +100,7 @@ def set_days(rows: list[DateRows], first_stamps_ns: list[int | None]) -> None:
 def load_gt(data_root: Path, row: DateRows, frames: pd.DataFrame, pf: pd.DataFrame) -> scoring.GtDate | None:
     """The date's ground truth (synthetic rows), or None when the row has no gt/fruits.parquet and gt/poses.parquet."""
     from nerf.geometry import pose_matrix
-    from stages.evaluate import gt_poses_by_frame, to_ground_truth_frame
+    from rowmap.ground_truth import gt_poses_by_frame, to_ground_truth_frame
 
     gt = Path(data_root) / "raw" / row.seq / "gt"
     if not (gt / "fruits.parquet").is_file() or not (gt / "poses.parquet").is_file():

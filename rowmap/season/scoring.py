@@ -63,7 +63,7 @@ def _population(g: pd.DataFrame) -> pd.DataFrame:
 def score(season: Season, dates: list[DateRows], gts: list[GtDate], match_max_m: float,
           edge_margin_m: float) -> dict[str, float]:
     """Scores (metric -> value) of `season` made from `dates` (in the season's order) with ground truth `gts`."""
-    from stages.evaluate import match_fruits
+    from rowmap.ground_truth import match_fruits
 
     n = len(dates)
     pops = [_population(g.fruits) for g in gts]
