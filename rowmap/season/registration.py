@@ -8,12 +8,14 @@ refine x, y, z and yaw (the row frames are gravity-aligned: roll and pitch are n
 
 Each date's row frame drifts along the row with its own odometry (a few cm per metre), so no single rigid
 transform fits a whole row to within a centimetre. On top of the rigid transform a smooth correction along
-the row takes up the rest: at a point with row coordinate x, the kernel-weighted mean of the paired fruits'
-residuals,
+the row takes up the rest: at a point with row coordinate x, c(x) = a from a local linear fit of the paired
+fruits' residuals r_i at x_i,
 
-    c(x) = sum_i w_i r_i / (sum_i w_i + PRIOR_WEIGHT),   w_i = exp(-(x - x_i)^2 / (2 bandwidth_m^2)),
+    min_{a, b} sum_i w_i |r_i - a - b (x_i - x)|^2 + PRIOR_WEIGHT (|a|^2 + h^2 |b|^2),
+    w_i = exp(-(x_i - x)^2 / (2 h^2)),  h = max(bandwidth_m, distance to the MIN_NEIGHBOURS-th nearest x_i),
 
-which shrinks towards the rigid transform (c = 0) where no pair is near.
+so odometry drift that grows along the row is followed, continued past the last pairs, and shrunk towards
+the rigid transform where pairs are few.
 """
 from __future__ import annotations
 
@@ -22,9 +24,13 @@ from dataclasses import dataclass, field
 import numpy as np
 
 
-PRIOR_WEIGHT = 0.5
+GROW_ROUNDS = 4
+"""Rounds of pairing at the seed radius, each with the correction of the round before."""
+PRIOR_WEIGHT = 0.1
 """Weight (in pairs) of the rigid transform in the correction along the row: one lone pair moves its
-neighbourhood by 2/3 of its residual."""
+neighbourhood by 10/11 of its residual."""
+MIN_NEIGHBOURS = 4
+"""The correction at any point is fitted to at least this many pairs (the bandwidth widens to reach them)."""
 
 
 @dataclass(frozen=True)
@@ -56,12 +62,23 @@ def apply(transform: np.ndarray, xyz: np.ndarray) -> np.ndarray:
 
 
 def correction(x: np.ndarray, anchors_x: np.ndarray, residuals: np.ndarray, bandwidth_m: float) -> np.ndarray:
-    """[N, 3] smooth correction at row coordinates x [N] (module docstring). Example: one anchor at x = 0 with
-    residual (0, 0.03, 0) and bandwidth 0.3 m gives 0.02 m at x = 0 and 0.0069 m at x = 0.3 m."""
+    """[N, 3] smooth correction at row coordinates x [N]: a local linear fit (module docstring) of the anchors'
+    residuals [P, 3] around each x, Gaussian weights over max(bandwidth_m, the distance to the MIN_NEIGHBOURS-th
+    nearest anchor), so beyond the last anchors it continues their trend. Example: anchors at x = 0 and 1 m with
+    residuals 0 and 0.02 m (bandwidth 0.3 m) give 0.0092 m at x = 0.5 m and 0.0194 m at x = 1.5 m (the prior
+    holds the two-point slope back a little)."""
+    x = np.asarray(x, np.float64)
     if len(anchors_x) == 0:
         return np.zeros((len(x), 3))
-    w = np.exp(-0.5 * ((np.asarray(x)[:, None] - anchors_x[None]) / bandwidth_m) ** 2)   # [N, P]
-    return (w @ residuals) / (w.sum(1, keepdims=True) + PRIOR_WEIGHT)
+    d = anchors_x[None] - x[:, None]                                                     # [N, P]
+    k = min(len(anchors_x), MIN_NEIGHBOURS)
+    bw = np.maximum(bandwidth_m, np.sort(np.abs(d), axis=1)[:, k - 1])[:, None]          # [N, 1]
+    w = np.exp(-0.5 * (d / bw) ** 2)
+    s0 = w.sum(1) + PRIOR_WEIGHT
+    s1 = (w * d).sum(1)
+    s2 = (w * d * d).sum(1) + PRIOR_WEIGHT * bw[:, 0] ** 2
+    t0, t1 = w @ residuals, (w * d) @ residuals                                         # [N, 3]
+    return (s2[:, None] * t0 - s1[:, None] * t1) / (s0 * s2 - s1 * s1)[:, None]
 
 
 def fit_yaw_translation(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
@@ -108,7 +125,9 @@ def register(moving: np.ndarray, fixed: np.ndarray, moving_d: np.ndarray, fixed_
     t = np.eye(4)
     t[:3, 3] = best
     reg = Registration(t, 0, float("nan"), bandwidth_m=bandwidth_m)
-    for radius in np.geomspace(seed_inlier_m, final_inlier_m, 4):
+    # rounds at the seed radius first: the pairs found with the correction so far bring in their neighbours, which
+    # the drift had kept apart; then the radius shrinks to the final one
+    for radius in [seed_inlier_m] * GROW_ROUNDS + list(np.geomspace(seed_inlier_m, final_inlier_m, 4)):
         i, j = _mutual_nearest(reg(moving), fixed, radius)
         if len(i) == 0:
             break

@@ -126,3 +126,61 @@ def test_a_fruit_missed_once_continues_its_track_within_max_missed_dates():
     drop = track_season(dates, Config(max_missed_dates=0)).tracks
     assert keep.track_id.nunique() == len(w) and (keep.event != "harvested").all()
     assert drop.track_id.nunique() == len(w) + 1 and (drop.event == "harvested").sum() == 1
+
+
+def two_dates(rng, shift=(0.0, 0.0, 0.0), drift_per_m=0.0, grow_m=0.0, new_d=0.04):
+    """Day 0 and day 7 of one set of green fruits; day 7's frame shifted and drifting along the row as odometry
+    does (x scaled by 1 + drift_per_m, y bent by drift_per_m x^2): no rigid transform undoes it; one new fruit."""
+    w = world_fruits(rng, 24)
+    w = w[(w.x > 0.1) & (w.x < 1.9)].reset_index(drop=True)
+    w["c"] = "fruit_green"
+    later = pd.concat([w.assign(d=w.d + grow_m), pd.DataFrame({"gid": [100], "x": [1.0], "y": [0.52], "z": [0.77],
+                                                              "d": [new_d], "c": ["fruit_green"]})], ignore_index=True)
+    d0 = as_date("a", 0.0, w, np.eye(4), rng, noise_m=0.002)
+    d1 = as_date("b", 7.0, later, np.linalg.inv(yaw_move(0.0, shift)), rng, noise_m=0.002)
+    xyz = d1.fruits[["x_m", "y_m", "z_m"]].to_numpy()
+    d1.fruits[["x_m", "y_m", "z_m"]] = xyz + drift_per_m * np.stack([xyz[:, 0], xyz[:, 0] ** 2, 0 * xyz[:, 0]], 1)
+    return w, d0, d1
+
+
+def test_max_shift_m_bounds_the_offset_the_registration_searches():
+    w, d0, d1 = two_dates(np.random.default_rng(7), shift=(0.4, 0.0, 0.0))
+    assert track_season([d0, d1], Config(max_shift_m=0.6)).tracks.track_id.nunique() == len(w) + 1
+    assert track_season([d0, d1], Config(max_shift_m=0.2)).tracks.track_id.nunique() > len(w) + 5
+
+
+def test_warp_bandwidth_m_takes_up_drift_a_rigid_transform_cannot():
+    w, d0, d1 = two_dates(np.random.default_rng(8), drift_per_m=0.02)
+    season = track_season([d0, d1], Config(warp_bandwidth_m=0.3))
+    reg = season.transforms[1]
+    truth = d0.fruits.set_index("gid")[["x_m", "y_m", "z_m"]]
+    f1 = d1.fruits[d1.fruits.gid.isin(truth.index)]
+    err = np.linalg.norm(reg(f1[["x_m", "y_m", "z_m"]].to_numpy()) - truth.loc[f1.gid].to_numpy(), axis=1)
+    rigid = np.linalg.norm(registration.apply(reg.transform, f1[["x_m", "y_m", "z_m"]].to_numpy())
+                           - truth.loc[f1.gid].to_numpy(), axis=1)
+    assert np.median(err) < 0.5 * np.median(rigid) and np.median(err) < 0.006
+    assert season.dates.correction_max_m.iloc[1] > 0.005
+    huge = track_season([d0, d1], Config(warp_bandwidth_m=100.0)).transforms[1]   # one constant correction
+    err_huge = np.linalg.norm(huge(f1[["x_m", "y_m", "z_m"]].to_numpy()) - truth.loc[f1.gid].to_numpy(), axis=1)
+    assert np.median(err) < np.median(err_huge)
+
+
+def test_set_max_diameter_m_decides_whether_a_new_fruit_set():
+    _, d0, d1 = two_dates(np.random.default_rng(9), new_d=0.05)
+    small = track_season([d0, d1], Config(set_max_diameter_m=0.065)).tracks
+    strict = track_season([d0, d1], Config(set_max_diameter_m=0.045)).tracks
+    assert (small.event == "set").sum() == 1 and (strict.event == "set").sum() == 0
+
+
+def test_gate_m_and_growth_mm_per_day_decide_what_continues_a_track():
+    w, d0, d1 = two_dates(np.random.default_rng(10), grow_m=0.025)           # 25 mm in a week
+    n = len(w) + 1
+    assert track_season([d0, d1], Config(growth_mm_per_day=3.0)).tracks.track_id.nunique() == n
+    assert track_season([d0, d1], Config(growth_mm_per_day=1.0)).tracks.track_id.nunique() > n + 5
+    assert track_season([d0, d1], Config(gate_m=0.002, growth_mm_per_day=3.0)).tracks.track_id.nunique() > n + 5
+
+
+def test_correction_follows_and_continues_the_drift_of_the_pairs():
+    c = registration.correction(np.array([0.5, 1.5]), np.array([0.0, 1.0]), np.array([[0, 0, 0], [0.02, 0, 0.0]]), 0.3)
+    np.testing.assert_allclose(c[:, 0], [0.0092, 0.0194], atol=2e-4)   # the docstring's example
+    assert np.all(registration.correction(np.array([0.3]), np.zeros(0), np.zeros((0, 3)), 0.3) == 0)
