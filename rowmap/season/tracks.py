@@ -106,6 +106,21 @@ class _Track:
     last: int
 
 
+def stem_side_points(xyz: np.ndarray, diameter_m: np.ndarray, cameras_xyz: np.ndarray) -> np.ndarray:
+    """[N, 3] the side of each fruit that faces the plant: half a diameter behind its centre, across the camera
+    path (horizontal, perpendicular to the path's main direction, towards the fruits). That side hangs against
+    the plant and moves least as the fruit grows (its centre moves out into the aisle by half the growth).
+    Used to register and associate dates."""
+    if len(cameras_xyz) < 2 or len(xyz) == 0:
+        return xyz
+    xy = cameras_xyz[:, :2] - cameras_xyz[:, :2].mean(0)
+    along = np.linalg.svd(xy, full_matrices=False)[2][0]                # main direction of the path
+    across = np.array([-along[1], along[0], 0.0])
+    if np.mean((xyz - cameras_xyz.mean(0)) @ across) < 0:
+        across = -across
+    return xyz + 0.5 * np.nan_to_num(diameter_m)[:, None] * across
+
+
 def _ranks(names: pd.Series) -> np.ndarray:
     return np.array([RIPENESS_RANK.get(str(n), 0) for n in names], np.int64)
 
@@ -119,8 +134,9 @@ def track_season(dates: list[DateRows], cfg: Config) -> Season:
     positions = []
     for k, row in enumerate(dates):
         f = row.fruits.reset_index(drop=True)
-        xyz = f[["x_m", "y_m", "z_m"]].to_numpy(np.float64)
+        centres = f[["x_m", "y_m", "z_m"]].to_numpy(np.float64)
         d = f["diameter_m"].to_numpy(np.float64)
+        xyz = stem_side_points(centres, d, row.cameras_xyz)
         rank = _ranks(f["class_name"])
         open_ = [t for t in tracks if k - t.last - 1 <= cfg.max_missed_dates]
         if k == 0:
@@ -132,7 +148,7 @@ def track_season(dates: list[DateRows], cfg: Config) -> Season:
         transforms.append(reg)
         regs.append(reg)
         reg_xyz = reg(xyz)
-        positions.append(reg_xyz)
+        positions.append(reg(centres))
         cost = association.costs(np.array([t.xyz for t in open_]).reshape(-1, 3),
                                  np.array([t.diameter_m for t in open_]), np.array([t.rank for t in open_]),
                                  np.array([row.day - dates[t.last].day for t in open_]), reg_xyz, d, rank, gates)
