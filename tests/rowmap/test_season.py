@@ -184,3 +184,15 @@ def test_correction_follows_and_continues_the_drift_of_the_pairs():
     c = registration.correction(np.array([0.5, 1.5]), np.array([0.0, 1.0]), np.array([[0, 0, 0], [0.02, 0, 0.0]]), 0.3)
     np.testing.assert_allclose(c[:, 0], [0.0092, 0.0194], atol=2e-4)   # the docstring's example
     assert np.all(registration.correction(np.array([0.3]), np.zeros(0), np.zeros((0, 3)), 0.3) == 0)
+
+
+def test_the_plant_side_of_a_growing_fruit_stays_put():
+    from rowmap.season.tracks import stem_side_points
+
+    cams = np.stack([np.linspace(0, 1.5, 20), np.full(20, 0.01), np.full(20, 0.75)], 1)
+    stem_y = 0.65
+    d = np.array([0.04, 0.08])
+    centres = np.array([[0.7, stem_y - 0.5 * d[0], 0.8], [0.7, stem_y - 0.5 * d[1], 0.8]])  # pushed off the stem
+    side = stem_side_points(centres, d, cams)
+    np.testing.assert_allclose(side[:, 1], stem_y, atol=1e-3)
+    np.testing.assert_allclose(side[:, [0, 2]], centres[:, [0, 2]], atol=1e-3)
