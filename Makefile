@@ -3,6 +3,7 @@
 # make test-slow        the tests marked slow (whole rows, campaigns, killed runs, the real recording)
 # make <stage> SEQ=...  run one stage (stage names come from pipeline/dag.py)
 # make campaign SEQS="a b c" [ARGS="--scheduler ADDRESS --config FILE"]   every row, windows on one cluster
+# make track SEQS="row@date1 row@date2 ..." [ARGS="--set track.gate_m=0.04"]   one row's fruits across dates
 SEQ ?= synth_row
 ARGS ?=
 VENV := .venv
@@ -36,6 +37,11 @@ $(sort $(STAGES) evaluate): $(STAMP)
 campaign: $(STAMP)
 	$(if $(strip $(SEQS)),,$(error give the rows: make campaign SEQS="row_a row_b ..."))
 	$(PAG) campaign --seqs $(SEQS) $(ARGS)
+
+.PHONY: track
+track: $(STAMP)
+	$(if $(strip $(SEQS)),,$(error give the dates of the row: make track SEQS="row_d1 row_d2 ..."))
+	$(PAG) track --seqs $(SEQS) $(ARGS)
 
 bench: $(STAMP)
 	$(PAG) bench $(ARGS)

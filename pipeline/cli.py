@@ -4,6 +4,7 @@
     pag all --seq SEQ [--from STAGE] [--to STAGE] [--force]
     pag campaign --seqs SEQ [SEQ ...] [--scheduler ADDRESS]   every row, windows on one Dask cluster,
                                          then data/processed/_campaign/ (docs/campaign.md)
+    pag track --seqs SEQ[@DATE] ...      one row's season: fruits tracked across dates (docs/season.md)
     pag bench <name> [args ...]          (bench/<name>.py; `pag bench list`)
     pag config --seq SEQ [--doc]         resolved config (with field docs)
     pag schema [TABLE]                   table columns, units and docs
@@ -55,6 +56,15 @@ def parser() -> argparse.ArgumentParser:
                             "their tables into data/processed/_campaign/")
     p_camp.add_argument("--seqs", nargs="+", required=True, metavar="SEQ", help="sequence folders under data/raw/")
     _run_options(p_camp, "YAML file with config sections, and per-row ones under rows: {SEQ: {...}}")
+    p_track = sub.add_parser("track", help="track one row's fruits across recording dates into "
+                             "data/processed/_season/ (docs/season.md)")
+    p_track.add_argument("--seqs", nargs="+", required=True, metavar="SEQ[@DATE]",
+                         help="finished rows of the same row on different dates; @YYYY-MM-DD gives a date")
+    p_track.add_argument("--set", dest="overrides", action="append", default=[], metavar="track.KEY=VALUE",
+                         help="a tracking setting, e.g. --set track.gate_m=0.04 (repeatable)")
+    p_track.add_argument("--data-root", type=Path, default=Path("data"), help="data folder (default: ./data)")
+    p_track.add_argument("--name", default="_season", help="dataset folder under data/processed/ (default: _season)")
+    p_track.add_argument("--debug", action="store_true", help="show tracebacks")
     p_cfg = sub.add_parser("config", help="print the resolved config")
     _common(p_cfg)
     p_cfg.add_argument("--doc", action="store_true", help="with each field's documentation")
@@ -106,6 +116,24 @@ def _campaign(args: argparse.Namespace) -> int:
     return 1 if failed else 0
 
 
+def _track(args: argparse.Namespace) -> int:
+    from pipeline import season
+
+    if not args.name.startswith("_"):
+        raise ValueError(f"--name {args.name!r}: season folders start with '_' (other names are sequences)")
+    result, scores, out = season.track(args.seqs, args.data_root, args.overrides, args.name)
+    d = result.dates
+    for r in d.itertuples(index=False):
+        print(f"[pag track] {r.seq} (day {r.day:.1f}): {r.fruits} fruits, {r.continued} continued, {r.set} set, "
+              f"{r.harvested} harvested; registered by {r.registration_inliers} fruits")
+    for k in ("association_precision", "association_recall", "idf1", "registration_error_median_m",
+              "growth_error_median_mm_per_week", "event_f1", "tracking_cost_share"):
+        if k in scores:
+            print(f"[pag track] {k} = {scores[k]:.4g}")
+    print(f"[pag track] {result.tracks.track_id.nunique()} tracks; dataset {out}; report: {(out / 'report.html').resolve()}")
+    return 0
+
+
 def dispatch(args: argparse.Namespace) -> int:
     if args.command == "stages":
         from pipeline import dag
@@ -123,6 +151,8 @@ def dispatch(args: argparse.Namespace) -> int:
         return _bench(args.name, args.args)
     if args.command == "campaign":
         return _campaign(args)
+    if args.command == "track":
+        return _track(args)
     runner = _runner(args)
     if args.command == "config":
         from pipeline import config as cfgmod

@@ -28,6 +28,9 @@ TABLES: tuple[str, ...] = (
     "counts",
     "evaluation",
     "campaign_rows",
+    "fruit_tracks",
+    "fruit_track_summary",
+    "season_dates",
     "bench_encoding",
 )
 

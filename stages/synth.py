@@ -22,7 +22,10 @@ INPUTS: tuple[str, ...] = ()
 OUTPUTS = ("raw",)
 
 FIRST_STAMP_NS = 1_600_000_000_000_000_000
-"""Stamp of the first camera frame; frame i is at FIRST_STAMP_NS + round(i * 1e9 / fps)."""
+"""Stamp of the first camera frame of day 0; frame i is at FIRST_STAMP_NS + day * 86400 s + round(i * 1e9 / fps)."""
+START_SHIFT_M = 0.25
+"""On a later day (synth.day > 0) the robot starts up to this far (uniform, either way) from the first day's start
+along the row; the planted stretch extends far enough beyond the first day's view to show plants there."""
 ODOM_FRAME, BASE_FRAME, CAMERA_FRAME = "odom", "base_link", "camera_color_optical_frame"
 TOPICS = {"color": "/camera/color/image_raw", "depth": "/camera/aligned_depth_to_color/image_raw",
           "info": "/camera/color/camera_info", "odom": "/odom", "tf_static": "/tf_static"}
@@ -123,6 +126,16 @@ class Config:
     yes for small, no for bup20)."""
     workers: int = 0
     """render threads (0 = one per CPU core, at most 4); the output does not depend on it."""
+    day: float = 0.0
+    """days since the season's first recording (>= 0; 0 = the row as planned). The same seed on another day
+    shows the same plants and fruits, grown, ripened, harvested and with new fruits set (synthetic/season.py);
+    leaves have moved a little, the recording is `day` days later and the robot starts up to START_SHIFT_M
+    elsewhere along the row with new odometry drift, its odometry starting at its own origin."""
+    growth_rate_scale: float = 1.0
+    """multiplies every fruit's growth speed over the season (> 0; 1 = a green pepper grows about 0.5-1.5 mm a
+    day); only matters with day > 0."""
+    fruit_set_per_m_per_week: float = 1.5
+    """new fruits that set per metre of row and week over the season (>= 0); only matters with day > 0."""
 
     def __post_init__(self) -> None:
         if self.preset not in PRESETS:
@@ -131,13 +144,14 @@ class Config:
             if getattr(self, name) is None:
                 object.__setattr__(self, name, value)
         positive = ("n_frames", "width", "height", "fps", "speed_m_per_s", "camera_distance_m", "odom_rate_hz",
-                    "supersample", "plant_spacing_m", "leaf_node_spacing_m", "leaf_size", "texture_scale")
+                    "supersample", "plant_spacing_m", "leaf_node_spacing_m", "leaf_size", "texture_scale",
+                    "growth_rate_scale")
         for name in positive:
             if not getattr(self, name) > 0:
                 raise ValueError(f"synth.{name} must be > 0, got {getattr(self, name)}")
         non_negative = ("fruits_per_m", "odom_drift_m_per_m", "odom_yaw_drift_deg_per_m", "odom_noise_m",
                         "det_false_pos_rate", "det_boundary_px", "det_min_area_px", "n_labelled", "workers",
-                        "base_height_m", "camera_mast_m")
+                        "base_height_m", "camera_mast_m", "day", "fruit_set_per_m_per_week")
         for name in non_negative:
             if getattr(self, name) < 0:
                 raise ValueError(f"synth.{name} must be >= 0, got {getattr(self, name)}")
@@ -157,6 +171,10 @@ class Config:
                              f"({self.n_frames - 2}): labelled frames are never the first or last frame")
 
 
+SEASON_SETTINGS = ("day", "growth_rate_scale", "fruit_set_per_m_per_week")
+"""Settings that change nothing on day 0 (left out of gt/synth_config.yaml there, so day 0 is the row it always was)."""
+
+
 def intrinsics(cfg: Config) -> np.ndarray:
     """3x3 K: square pixels, principal point at the image centre (pixel centres at half-integers)."""
     f = cfg.width / 2 / np.tan(np.radians(cfg.fov_x_deg) / 2)
@@ -164,7 +182,15 @@ def intrinsics(cfg: Config) -> np.ndarray:
 
 
 def frame_stamps(cfg: Config) -> np.ndarray:
-    return FIRST_STAMP_NS + np.round(np.arange(cfg.n_frames) * 1e9 / cfg.fps).astype(np.int64)
+    return (FIRST_STAMP_NS + int(round(cfg.day * 86_400e9)) +
+            np.round(np.arange(cfg.n_frames) * 1e9 / cfg.fps).astype(np.int64))
+
+
+def stream(cfg: Config, key: int, *more: int) -> np.random.Generator:
+    """The random stream `key` of the row: [seed, key, ...] on day 0 (the streams rows always had), and a day's
+    own stream [seed, key, 1000, day in seconds, ...] on a later day."""
+    day = [] if cfg.day == 0 else [1000, int(round(cfg.day * 86_400))]
+    return np.random.default_rng([cfg.seed, key, *day, *more])
 
 
 def odometry_stamps(cfg: Config, frame_stamps_ns: np.ndarray) -> np.ndarray:
@@ -242,6 +268,26 @@ def odometry_twist(stamps_ns: np.ndarray, poses: np.ndarray) -> tuple[np.ndarray
     return linear, angular
 
 
+def season_table(sc: scene.Scene, day: float) -> pd.DataFrame:
+    """gt/season.parquet: every fruit planned up to `day` (on the plant at the first recording or set since),
+    with the days of its events so far (NaN = not (yet)): set_day (NaN for a fruit on the plant at day 0),
+    red_day, harvest_day, and whether it is on the plant on `day`."""
+    lives = sc.lives or {}
+    ids = np.array(sorted(lives), np.int32)
+    near = sc.near_by_id or {}
+
+    def upto(v: float) -> float:
+        return v if v <= day else float("nan")
+    return pd.DataFrame({
+        "fruit_id": ids,
+        "set_day": np.array([lives[i].t0_day if lives[i].t0_day > 0 else np.nan for i in ids], np.float64),
+        "red_day": np.array([upto(lives[i].t_red_day) for i in ids], np.float64),
+        "harvest_day": np.array([upto(lives[i].t_harvest_day) for i in ids], np.float64),
+        "present": np.array([lives[i].present(day) for i in ids], bool),
+        "near_row": np.array([near[int(i)] for i in ids], bool),
+    })
+
+
 def fruit_table(fruits: list[scene.Fruit], n_frames_visible: np.ndarray) -> pd.DataFrame:
     """gt/fruits.parquet: the data/README.md columns plus n_frames_visible (frames with >= 1 pixel of it)."""
     centres = np.array([f.centre for f in fruits], np.float64).reshape(-1, 3)
@@ -264,22 +310,39 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
     odom_stamps = odometry_stamps(cfg, stamps)
     odom_t0, n_odom = int(odom_stamps[0]), len(odom_stamps)
 
-    path = trajectory.BasePath.random(cfg.speed_m_per_s, cfg.base_height_m, 0.0, np.random.default_rng([cfg.seed, 1]))
+    t_robot_camera = trajectory.camera_extrinsic(cfg.camera_mast_m, cfg.camera_lateral_m)
+    k = intrinsics(cfg)
+    # the row is laid out from the first day's path, so every day shows the same plants
+    first = trajectory.BasePath.random(cfg.speed_m_per_s, cfg.base_height_m, 0.0, np.random.default_rng([cfg.seed, 1]))
+    first_cam = first.poses((stamps - stamps[0] + 200_000_000) / 1e9) @ t_robot_camera
+    layout = row_layout(cfg, first_cam[:, 0, 3], cfg.camera_lateral_m, cfg.base_height_m + cfg.camera_mast_m, k)
+    path = first
+    if cfg.day > 0:
+        rng = stream(cfg, 1)
+        path = trajectory.BasePath.random(cfg.speed_m_per_s, cfg.base_height_m,
+                                          float(rng.uniform(-START_SHIFT_M, START_SHIFT_M)), rng)
     ox, oy, oyaw = path.xy_yaw((odom_stamps - odom_t0) / 1e9)
     odom = trajectory.drifting_odometry(ox, oy, oyaw, cfg.base_height_m,
                                         trajectory.OdometryErrors(cfg.odom_drift_m_per_m, cfg.odom_yaw_drift_deg_per_m,
                                                                   cfg.odom_noise_m),
-                                        np.random.default_rng([cfg.seed, 2]))
-    t_robot_camera = trajectory.camera_extrinsic(cfg.camera_mast_m, cfg.camera_lateral_m)
+                                        stream(cfg, 2))
+    if cfg.day > 0:  # the robot's odometry starts at its own origin: x = y = 0 where it starts, heading kept
+        odom[:, 0, 3] -= ox[0]
+        odom[:, 1, 3] -= oy[0]
     cam = path.poses((stamps - odom_t0) / 1e9) @ t_robot_camera  # [N, 4, 4] true camera-to-world
-    k = intrinsics(cfg)
-    layout = row_layout(cfg, cam[:, 0, 3], cfg.camera_lateral_m, cfg.base_height_m + cfg.camera_mast_m, k)
-    sc = scene.build_scene(layout, cfg.seed)
+    sc = scene.build_scene(layout, cfg.seed, scene.Season(cfg.day, cfg.growth_rate_scale, cfg.fruit_set_per_m_per_week))
     fruits = sc.fruits
-    n_ids = len(fruits) + 1
-    sizes = detector.FruitSizes(np.array([0.0] + [f.diameter_nominal_m for f in fruits]),
-                                np.array([0.0] + [f.length_m for f in fruits]),
-                                np.array([False] + [f.near_row for f in fruits]), float(k[0, 0]), float(k[1, 1]))
+    n_ids = max([f.fruit_id for f in fruits], default=0) + 1
+    by_id = np.zeros(n_ids, bool)
+    by_id[[f.fruit_id for f in fruits]] = True
+
+    def per_id(values: list, fill) -> np.ndarray:
+        out = np.full(n_ids, fill, np.asarray(values).dtype if values else type(fill))
+        out[by_id] = values
+        return out
+    sizes = detector.FruitSizes(per_id([f.diameter_nominal_m for f in fruits], 0.0),
+                                per_id([f.length_m for f in fruits], 0.0),
+                                per_id([f.near_row for f in fruits], False), float(k[0, 0]), float(k[1, 1]))
     noise = detector.DetectorNoise(cfg.det_miss_rate, cfg.det_false_pos_rate, cfg.det_boundary_px,
                                    cfg.det_merge_rate, cfg.det_class_confusion_rate, cfg.det_void_rate,
                                    cfg.det_min_area_px)
@@ -293,7 +356,7 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
         fr = render.render(sc, cam[i], k, cfg.width, cfg.height, cfg.supersample, cfg.texture_scale,
                            nthreads=1 if workers > 1 else 2, rays=rays)
         fr["detections"] = detector.detect(fr["semantic"], fr["instance"], fr["depth"], sizes, noise,
-                                           np.random.default_rng([cfg.seed, 3, i]))
+                                           stream(cfg, 3, i))
         return fr
 
     bag = None
@@ -349,12 +412,14 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
     poses.insert(0, "stamp_ns", stamps)
     poses.insert(0, "frame_id", np.arange(cfg.n_frames, dtype=np.int32))
     poses.to_parquet(gt / "poses.parquet", index=False)
-    table = fruit_table(fruits, views[1:])
+    table = fruit_table(fruits, views[by_id])
     table.to_parquet(gt / "fruits.parquet", index=False)
+    if cfg.day > 0:  # (day 0 writes exactly the files a row always had)
+        season_table(sc, cfg.day).to_parquet(gt / "season.parquet", index=False)
     # the settings that made the row (render threads do not change it)
     # (the preset is left out: the resolved sizes it filled in are written)
     settings = {k_: list(v) if isinstance(v, tuple) else v for k_, v in asdict(cfg).items()
-                if k_ not in ("workers", "preset")}
+                if k_ not in ("workers", "preset") and (cfg.day > 0 or k_ not in SEASON_SETTINGS)}
     (gt / "synth_config.yaml").write_text(yaml.safe_dump(settings, sort_keys=True))
 
     near = table["near_row"].to_numpy()

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 import open3d as o3d
 
-from synthetic import meshes
+from synthetic import meshes, season
 from synthetic.meshes import Mesh
 
 FLOOR, WALL, PIPE, POST, STEM, LEAF, FRUIT = range(7)
@@ -85,6 +85,10 @@ class Scene:
     """[P, 4] per-part texture parameters (meaning depends on the material)."""
     fruits: list[Fruit]
     seed: int
+    lives: dict[int, season.FruitLife] | None = None
+    """fruit id -> its course over the season (every fruit planned up to the scene's day, present or not)."""
+    near_by_id: dict[int, bool] | None = None
+    """fruit id -> in the near row (every fruit of `lives`)."""
 
 
 class SceneBuilder:
@@ -95,6 +99,7 @@ class SceneBuilder:
         self.attrs: list[tuple[int, int, int]] = []
         self.frames: list[tuple[np.ndarray, np.ndarray]] = []
         self.params: list[np.ndarray] = []
+        self.n_leaves = 0
 
     def add(self, local: Mesh, rot: np.ndarray, origin: np.ndarray, material: int, klass: int,
             instance: int = 0, param: tuple[float, ...] = ()) -> None:
@@ -131,6 +136,22 @@ class _FruitPlan:
     phase: float
     hue: float
     stalk_to: np.ndarray
+    anchor: np.ndarray | None = None
+    """point on the stem the fruit hangs from; centre = anchor + (diameter / 2 + gap_m) * direction."""
+    direction: np.ndarray | None = None
+    gap_m: float = 0.0
+
+
+@dataclass(frozen=True)
+class Season:
+    """Which date of the season the scene shows (synthetic/season.py)."""
+
+    day: float = 0.0
+    """days since the first recording (0 = the row as planned)."""
+    growth_rate_scale: float = 1.0
+    """multiplies every fruit's growth speed."""
+    fruit_set_per_m_per_week: float = 1.5
+    """new fruits setting per metre of row and week."""
 
 
 def _stem_polyline(rng: np.random.Generator, x: float, y: float, height_m: float, n: int = 14) -> np.ndarray:
@@ -161,7 +182,8 @@ def _plan_fruits(rng: np.random.Generator, layout: RowLayout, stems: list[np.nda
             z = rng.uniform(*z_range)
             az = -np.pi / 2 + rng.normal(0.0, 0.8)
             reach = 0.5 * d + rng.uniform(0.008, 0.03)
-            c = _point_on_stem(stem, z) + reach * np.array([np.cos(az), np.sin(az), 0.0])
+            anchor, direction = _point_on_stem(stem, z), np.array([np.cos(az), np.sin(az), 0.0])
+            c = anchor + reach * direction
             radius = 0.5 * max(d, length)
             if any(np.linalg.norm(c - p.centre) < 0.9 * (radius + 0.5 * max(p.diameter_m, p.length_m)) + 0.004
                    for p in plans):
@@ -177,13 +199,73 @@ def _plan_fruits(rng: np.random.Generator, layout: RowLayout, stems: list[np.nda
         stalk_to = _point_on_stem(stem, min(z + 0.5 * length + rng.uniform(0.02, 0.05), layout.plant_height_m))
         plans.append(_FruitPlan(near, int(rng.choice([GREEN, MIXED, RED], p=mix)), c, rot, d, length,
                                 int(rng.choice([3, 4], p=[0.35, 0.65])), rng.uniform(0, 2 * np.pi),
-                                rng.uniform(0, 1), stalk_to))
+                                rng.uniform(0, 1), stalk_to, anchor, direction, reach - 0.5 * d))
     return plans
 
 
+def _new_fruits(seed: int, layout: RowLayout, rows: list[tuple[bool, list[np.ndarray]]], taken: list[_FruitPlan],
+                season_: Season) -> list[tuple[_FruitPlan, season.FruitLife]]:
+    """Fruits that set after the first recording, up to season_.day: planned week by week from their own
+    streams ([seed, 14, week]), so a later date extends an earlier one's list. They keep clear of every other
+    fruit at its final size (`taken`, which this extends) and of the stems."""
+    out: list[tuple[_FruitPlan, season.FruitLife]] = []
+    for week in range(int(np.ceil(season_.day / season.WEEK_DAYS))):
+        rng = np.random.default_rng([seed, 14, week])
+        for near, stems in rows:
+            x_range, z_range = ((layout.near_fruit_x_m, layout.near_fruit_z_m) if near
+                                else (layout.far_fruit_x_m, layout.far_fruit_z_m))
+            stem_x = np.array([st[0, 0] for st in stems])
+            n = rng.poisson(season_.fruit_set_per_m_per_week * max(0.0, x_range[1] - x_range[0]))
+            for _ in range(n):
+                life = season.life_of_new_fruit(week * season.WEEK_DAYS + rng.uniform(0.0, season.WEEK_DAYS), rng,
+                                                season_.growth_rate_scale)
+                d_end = life.d_max_m
+                for _attempt in range(40):
+                    x_t, z = rng.uniform(*x_range), rng.uniform(*z_range)
+                    stem = stems[int(np.argmin(np.abs(stem_x - x_t)))]
+                    az = -np.pi / 2 + rng.normal(0.0, 0.8)
+                    gap = rng.uniform(0.008, 0.03)
+                    anchor, direction = _point_on_stem(stem, z), np.array([np.cos(az), np.sin(az), 0.0])
+                    c = anchor + (0.5 * d_end + gap) * direction
+                    if any(np.linalg.norm(c - p.centre) < 0.9 * (0.6 * d_end + 0.5 * max(p.diameter_m, p.length_m))
+                           + 0.004 for p in taken):
+                        continue
+                    if any(np.linalg.norm((c - _point_on_stem(s, z))[:2]) < 0.5 * d_end + 0.01 for s in stems
+                           if abs(s[0, 0] - c[0]) < 0.3):
+                        continue
+                    break
+                else:
+                    continue
+                tilt_dir, tilt, spin = rng.uniform(0, 2 * np.pi), np.radians(rng.uniform(0, 18)), rng.uniform(0, 2 * np.pi)
+                rot = meshes.rotation([np.cos(tilt_dir), np.sin(tilt_dir), 0.0], tilt) @ meshes.rotation([0, 0, 1], spin)
+                d0 = life.d0_m
+                length = d0 * rng.uniform(1.0, 1.3)
+                stalk_to = _point_on_stem(stem, min(z + 0.6 * d_end + rng.uniform(0.02, 0.05), layout.plant_height_m))
+                plan = _FruitPlan(near, season.GREEN, anchor + (0.5 * d0 + gap) * direction, rot, d0, length,
+                                  int(rng.choice([3, 4], p=[0.35, 0.65])), rng.uniform(0, 2 * np.pi), rng.uniform(0, 1),
+                                  stalk_to, anchor, direction, gap)
+                # reserve the room it grows into
+                taken.append(_FruitPlan(near, season.GREEN, c, rot, d_end, length * d_end / d0, 3, 0.0, 0.0, stalk_to))
+                out.append((plan, life))
+    return out
+
+
+def _on_day(p: _FruitPlan, life: season.FruitLife, day: float) -> _FruitPlan:
+    """The plan as the fruit is on `day`: its size, class and (pushed off the stem as it grows) centre."""
+    d = life.diameter_m(day)
+    if d == p.diameter_m and life.class_id(day) == p.class_id:
+        return p
+    centre = p.anchor + (0.5 * d + p.gap_m) * p.direction if d != p.diameter_m else p.centre
+    return _FruitPlan(p.near, life.class_id(day), centre, p.rot, d, p.length_m * d / p.diameter_m, p.n_lobes, p.phase,
+                      p.hue, p.stalk_to, p.anchor, p.direction, p.gap_m)
+
+
 def _add_leaves(b: SceneBuilder, rng: np.random.Generator, layout: RowLayout, stem: np.ndarray, klass: int,
-                row_y: float, z_band: tuple[float, float], avoid: list[_FruitPlan]) -> None:
-    """Leaves at nodes up the stem (within z_band), spiralling by the golden angle, kept out of the fruits."""
+                row_y: float, z_band: tuple[float, float], avoid: list[_FruitPlan], season_: Season,
+                seed: int) -> None:
+    """Leaves at nodes up the stem (within z_band), spiralling by the golden angle, kept out of the fruits;
+    after the first recording each leaf has turned and grown a little (season.leaf_motion, from the leaf's
+    own stream [seed, 13, leaf number], so the row's layout stays the first date's)."""
     z = max(0.12, z_band[0]) + rng.uniform(0.0, layout.node_spacing_m)
     az = rng.uniform(0, 2 * np.pi)
     centres = np.array([p.centre for p in avoid]) if avoid else np.zeros((0, 3))
@@ -202,15 +284,23 @@ def _add_leaves(b: SceneBuilder, rng: np.random.Generator, layout: RowLayout, st
                 samples = base + np.outer([0.25, 0.5, 0.8], rot[:, 0]) * length
                 if not len(centres) or np.all(np.linalg.norm(samples[:, None] - centres[None], axis=2)
                                               > radii[None] + 0.25 * width + 0.01):
-                    b.add(meshes.leaf_blade(length, width, rng.uniform(0.1, 0.5), rng.uniform(0.05, 0.3), res=6),
-                          rot, base, LEAF, klass, param=(rng.random(), length, width, row_y))
+                    curl, twist = rng.uniform(0.1, 0.5), rng.uniform(0.05, 0.3)
+                    tex = rng.random()
+                    b.n_leaves += 1
+                    grow = 1.0
+                    if season_.day > 0:
+                        axis, angle, grow = season.leaf_motion(np.random.default_rng([seed, 13, b.n_leaves]),
+                                                               season_.day)
+                        rot = meshes.rotation(axis, angle) @ rot
+                    b.add(meshes.leaf_blade(length * grow, width * grow, curl, twist, res=6),
+                          rot, base, LEAF, klass, param=(tex, length * grow, width * grow, row_y))
                     break
                 az += rng.uniform(1.0, 2.0)
         z += layout.node_spacing_m * rng.uniform(0.7, 1.3)
 
 
-def _plant_row(b: SceneBuilder, rng: np.random.Generator, layout: RowLayout, row_y: float, near: bool
-               ) -> tuple[list[np.ndarray], list[_FruitPlan]]:
+def _plant_row(b: SceneBuilder, rng: np.random.Generator, layout: RowLayout, row_y: float, near: bool,
+               season_: Season, seed: int) -> tuple[list[np.ndarray], list[_FruitPlan]]:
     px, lz = (layout.near_plant_x_m, layout.near_leaf_z_m) if near else (layout.far_plant_x_m, layout.far_leaf_z_m)
     xs = np.arange(px[0], px[1], layout.plant_spacing_m)
     xs = xs + rng.uniform(-0.3, 0.3, len(xs)) * layout.plant_spacing_m
@@ -221,12 +311,15 @@ def _plant_row(b: SceneBuilder, rng: np.random.Generator, layout: RowLayout, row
     for stem in stems:
         radii = np.linspace(0.010, 0.005, len(stem))
         b.add(meshes.tube(stem, radii, res=7), np.eye(3), np.zeros(3), STEM, klass, param=(rng.random(), 0, 0, row_y))
-        _add_leaves(b, rng, layout, stem, klass, row_y, lz, [p for p in plans if abs(p.centre[0] - stem[0, 0]) < 0.4])
+        _add_leaves(b, rng, layout, stem, klass, row_y, lz, [p for p in plans if abs(p.centre[0] - stem[0, 0]) < 0.4],
+                    season_, seed)
     return stems, plans
 
 
-def build_scene(layout: RowLayout, seed: int) -> Scene:
-    """The whole row; fruit ids are 1.. with the near row first, each row ordered along x."""
+def build_scene(layout: RowLayout, seed: int, season_: Season = Season()) -> Scene:
+    """The whole row on day season_.day; fruit ids are 1.. with the near row first, each row ordered along x
+    (as planned for the first recording), then the fruits that set later in the order they set. A fruit keeps
+    its id over the season; harvested and not yet set fruits are left out (ids then have gaps)."""
     rng = np.random.default_rng([seed, 11])
     b = SceneBuilder()
     x0, x1 = layout.x_range_m
@@ -242,11 +335,26 @@ def build_scene(layout: RowLayout, seed: int) -> Scene:
     for x in np.arange(np.floor((x0 - 4) / 3.2) * 3.2, x1 + 4, 3.2):  # glasshouse posts behind the far row
         pts = np.array([[x, far_y + 0.35, 0.0], [x, far_y + 0.35, 4.0]])
         b.add(meshes.tube(pts, 0.035, res=10), np.eye(3), np.zeros(3), POST, BACKGROUND)
-    _, near_plans = _plant_row(b, rng, layout, layout.near_row_y_m, True)
-    _, far_plans = _plant_row(b, rng, layout, far_y, False)
+    near_stems, near_plans = _plant_row(b, rng, layout, layout.near_row_y_m, True, season_, seed)
+    far_stems, far_plans = _plant_row(b, rng, layout, far_y, False, season_, seed)
     plans = sorted(near_plans, key=lambda p: p.centre[0]) + sorted(far_plans, key=lambda p: p.centre[0])
+    lives = [season.life_on_plant(p.class_id, p.diameter_m, np.random.default_rng([seed, 12, fid]),
+                                  season_.growth_rate_scale) for fid, p in enumerate(plans, start=1)]
+    if season_.day > 0:
+        grown = [_on_day(p, life, 1e4) for p, life in zip(plans, lives)]
+        new = _new_fruits(seed, layout, [(True, near_stems), (False, far_stems)], grown, season_)
+        plans += [p for p, _ in new]
+        lives += [life for _, life in new]
     fruits = []
-    for fid, p in enumerate(plans, start=1):
+    lives_by_id: dict[int, season.FruitLife] = {}
+    near_by_id: dict[int, bool] = {}
+    for fid, (p, life) in enumerate(zip(plans, lives), start=1):
+        lives_by_id[fid] = life
+        near_by_id[fid] = p.near
+        if season_.day > 0:
+            if not life.present(season_.day):
+                continue
+            p = _on_day(p, life, season_.day)
         stalk_klass = PLANT if p.near else BACKGROUND
         mesh = meshes.pepper(p.diameter_m, p.length_m, p.n_lobes, p.phase)
         width_mean, width_max = meshes.calipers(mesh.vertices)
@@ -258,4 +366,6 @@ def build_scene(layout: RowLayout, seed: int) -> Scene:
               stalk_klass, param=(0.5, 0, 0, layout.near_row_y_m if p.near else far_y))
         fruits.append(Fruit(fid, p.class_id, tuple(float(v) for v in p.centre), width_mean, float(p.length_m),
                             p.near, width_max, float(p.diameter_m)))
-    return b.build(fruits, seed)
+    sc = b.build(fruits, seed)
+    sc.lives, sc.near_by_id = lives_by_id, near_by_id
+    return sc

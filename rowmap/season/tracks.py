@@ -1,0 +1,243 @@
+"""A season of one row: dates in time order -> fruit tracks, per-track summary and per-date registration.
+
+Date by date: register the date's counted fruits onto the open tracks' last positions (registration.py; the
+first date defines the season frame), assign them to the tracks (association.py), start a track for every
+fruit left over. Events are read off the finished tracks, so a fruit missed on one date and seen again is
+neither harvested nor set:
+
+- `set`: the first observation of a track, not on the first date, of a fruit no wider than
+  set_max_diameter_m, lying inside the stretch of row the previous date recorded (so it would have been
+  seen had it been there);
+- `harvested`: a row on the date after a track's last observation when the fruit lies inside that date's
+  stretch (diameter, class and fruit_id null: the fruit is gone);
+- `present`: every other observation (the first date's fruits, fruits that entered the view, fruits seen again).
+
+The recorded stretch of a date is the x range of its cameras in the season frame, less edge_margin_m at
+either end.
+"""
+from __future__ import annotations
+
+import datetime as dt
+from dataclasses import dataclass
+
+import numpy as np
+import pandas as pd
+
+from rowmap.season import association, registration
+
+RIPENESS_RANK = {"fruit_green": 0, "fruit_mixed": 1, "fruit_red": 2}
+"""Ordinal ripeness of the fruit classes (pipeline/classes.py names); other names rank with green."""
+RED = "fruit_red"
+
+
+SUMMARY_COLUMNS = ["track_id", "n_dates", "first_seq", "first_date", "last_date", "first_day", "last_day", "set_date",
+                   "date_red", "days_to_red", "date_harvested", "day_harvested", "growth_mm_per_day",
+                   "diameter_first_m", "diameter_last_m", "class_first", "class_last", "x_m", "y_m", "z_m"]
+"""Columns of the per-track summary (schemas/fruit_track_summary.py documents them)."""
+
+
+@dataclass(frozen=True)
+class Config:
+    gate_m: float = 0.05
+    """largest distance (m, > 0) between a track's last position and a fruit of a later date, after
+    registration, for them to be one fruit. Raise it when the rows' maps drift by more than a few cm."""
+    size_tolerance_m: float = 0.01
+    """diameter measurement tolerance (m, > 0): a fruit may shrink by this much, or grow by this much more
+    than growth_mm_per_day allows, and still continue a track."""
+    growth_mm_per_day: float = 3.0
+    """fastest diameter growth a fruit continues a track with (mm/day, >= 0)."""
+    max_missed_dates: int = 1
+    """dates (>= 0) a track stays open without an observation (a fruit the detector or the map missed once)."""
+    max_shift_m: float = 0.6
+    """largest offset (m, > 0) between two dates' row frames along the floor: the robot's different start
+    plus the two odometries' drift. The registration searches within it."""
+    set_max_diameter_m: float = 0.065
+    """a new track counts as a newly set fruit only up to this diameter (m, > 0); a wider one was there
+    before and missed (the crop's fruits set at 2-4 cm and grow a few mm a day)."""
+    warp_bandwidth_m: float = 0.3
+    """length along the row (m, > 0) over which the registration's correction of the rows' different odometry
+    drift is smoothed (registration.py): smaller follows faster-changing drift, larger averages more fruits."""
+    edge_margin_m: float = 0.05
+    """the stretch of row a date recorded is its cameras' x range less this margin at each end (m, >= 0);
+    set and harvest events are only judged inside it."""
+
+    def __post_init__(self) -> None:
+        for name in ("gate_m", "size_tolerance_m", "max_shift_m", "set_max_diameter_m", "warp_bandwidth_m"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"track.{name} must be > 0, got {getattr(self, name)}")
+        for name in ("growth_mm_per_day", "max_missed_dates", "edge_margin_m"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"track.{name} must be >= 0, got {getattr(self, name)}")
+
+
+@dataclass
+class DateRows:
+    """One recording date of the row: the row's tables the season needs."""
+
+    seq: str
+    date: dt.date | None
+    day: float
+    """days since the season's first date (fractional: from the first frame stamps when they are absolute)."""
+    fruits: pd.DataFrame
+    """the row's fruits.parquet, counted fruits only: fruit_id, x_m, y_m, z_m, diameter_m, class_name."""
+    cameras_xyz: np.ndarray
+    """[K, 3] the fused frames' camera positions in the row frame (panoptic_frames)."""
+
+
+@dataclass
+class Season:
+    tracks: pd.DataFrame
+    """fruit_tracks (schemas/fruit_tracks.py) plus `seq`."""
+    summary: pd.DataFrame
+    """fruit_track_summary (schemas/fruit_track_summary.py)."""
+    dates: pd.DataFrame
+    """season_dates (schemas/season_dates.py)."""
+    transforms: list[registration.Registration]
+    """row frame -> season frame per date, in date order (callable on [N, 3] points)."""
+
+
+@dataclass
+class _Track:
+    obs: list[tuple[int, int]]
+    """(date index, row of that date's fruits)."""
+    xyz: np.ndarray
+    diameter_m: float
+    rank: int
+    last: int
+
+
+def stem_side_points(xyz: np.ndarray, diameter_m: np.ndarray, cameras_xyz: np.ndarray) -> np.ndarray:
+    """[N, 3] the side of each fruit that faces the plant: half a diameter behind its centre, across the camera
+    path (horizontal, perpendicular to the path's main direction, towards the fruits). That side hangs against
+    the plant and moves least as the fruit grows (its centre moves out into the aisle by half the growth).
+    Used to register and associate dates."""
+    if len(cameras_xyz) < 2 or len(xyz) == 0:
+        return xyz
+    xy = cameras_xyz[:, :2] - cameras_xyz[:, :2].mean(0)
+    along = np.linalg.svd(xy, full_matrices=False)[2][0]                # main direction of the path
+    across = np.array([-along[1], along[0], 0.0])
+    if np.mean((xyz - cameras_xyz.mean(0)) @ across) < 0:
+        across = -across
+    return xyz + 0.5 * np.nan_to_num(diameter_m)[:, None] * across
+
+
+def _ranks(names: pd.Series) -> np.ndarray:
+    return np.array([RIPENESS_RANK.get(str(n), 0) for n in names], np.int64)
+
+
+def track_season(dates: list[DateRows], cfg: Config) -> Season:
+    """Link the fruits of `dates` (any order; sorted by day here) into tracks."""
+    dates = sorted(dates, key=lambda r: r.day)
+    gates = association.Gates(cfg.gate_m, cfg.size_tolerance_m, cfg.growth_mm_per_day / 1000)
+    tracks: list[_Track] = []
+    transforms, regs = [], []
+    positions = []
+    for k, row in enumerate(dates):
+        f = row.fruits.reset_index(drop=True)
+        centres = f[["x_m", "y_m", "z_m"]].to_numpy(np.float64)
+        d = f["diameter_m"].to_numpy(np.float64)
+        xyz = stem_side_points(centres, d, row.cameras_xyz)
+        rank = _ranks(f["class_name"])
+        open_ = [t for t in tracks if k - t.last - 1 <= cfg.max_missed_dates]
+        if k == 0:
+            reg = registration.IDENTITY
+        else:
+            reg = registration.register(xyz, np.array([t.xyz for t in open_]).reshape(-1, 3),
+                                        d, np.array([t.diameter_m for t in open_]), cfg.max_shift_m,
+                                        final_inlier_m=min(0.02, cfg.gate_m), bandwidth_m=cfg.warp_bandwidth_m)
+        transforms.append(reg)
+        regs.append(reg)
+        reg_xyz = reg(xyz)
+        positions.append(reg(centres))
+        cost = association.costs(np.array([t.xyz for t in open_]).reshape(-1, 3),
+                                 np.array([t.diameter_m for t in open_]), np.array([t.rank for t in open_]),
+                                 np.array([row.day - dates[t.last].day for t in open_]), reg_xyz, d, rank, gates)
+        taken = set()
+        for i, j in association.assign(cost):
+            t = open_[i]
+            t.obs.append((k, j))
+            t.xyz, t.last = reg_xyz[j], k
+            t.diameter_m = d[j] if np.isfinite(d[j]) else t.diameter_m
+            t.rank = max(t.rank, rank[j])
+            taken.add(j)
+        for j in range(len(f)):
+            if j not in taken:
+                tracks.append(_Track([(k, j)], reg_xyz[j], d[j], int(rank[j]), k))
+    stretches = []
+    for row, t in zip(dates, transforms):
+        cx = t(row.cameras_xyz)[:, 0] if len(row.cameras_xyz) else np.zeros(0)
+        stretches.append((cx.min() + cfg.edge_margin_m, cx.max() - cfg.edge_margin_m) if len(cx) else (np.inf, -np.inf))
+    return _tables(dates, tracks, positions, stretches, transforms, regs, cfg)
+
+
+def _inside(x: float, stretch: tuple[float, float]) -> bool:
+    return stretch[0] <= x <= stretch[1]
+
+
+def growth_rate_mm_per_day(day: np.ndarray, diameter_m: np.ndarray) -> float:
+    """Least-squares slope of diameter over days, in mm/day (NaN with fewer than 2 dated diameters)."""
+    ok = np.isfinite(diameter_m) & np.isfinite(day)
+    if ok.sum() < 2 or np.ptp(day[ok]) == 0:
+        return float("nan")
+    return float(np.polyfit(day[ok], diameter_m[ok], 1)[0] * 1000)
+
+
+def _tables(dates: list[DateRows], tracks: list[_Track], positions: list[np.ndarray],
+            stretches: list[tuple[float, float]], transforms: list[np.ndarray],
+            regs: list[registration.Registration], cfg: Config) -> Season:
+    rows, summary = [], []
+    n = len(dates)
+    for tid, t in enumerate(sorted(tracks, key=lambda t: (t.obs[0][0], positions[t.obs[0][0]][t.obs[0][1], 0])), 1):
+        obs = []
+        for k, j in t.obs:
+            f = dates[k].fruits.iloc[j]
+            obs.append(dict(seq=dates[k].seq, date=dates[k].date, track_id=tid, day=dates[k].day,
+                            fruit_id=int(f.fruit_id), diameter_m=float(f.diameter_m), class_name=str(f.class_name),
+                            x_m=positions[k][j, 0], y_m=positions[k][j, 1], z_m=positions[k][j, 2], event="present"))
+        k0, kl = t.obs[0][0], t.obs[-1][0]
+        first = obs[0]
+        if (k0 > 0 and _inside(first["x_m"], stretches[k0 - 1]) and np.isfinite(first["diameter_m"])
+                and first["diameter_m"] <= cfg.set_max_diameter_m):
+            first["event"] = "set"
+        harvested = None
+        if kl < n - 1 and _inside(obs[-1]["x_m"], stretches[kl + 1]):
+            harvested = dates[kl + 1]
+            obs.append(dict(obs[-1], seq=harvested.seq, date=harvested.date, day=harvested.day, fruit_id=None,
+                            diameter_m=None, class_name=None, event="harvested"))
+        rows += obs
+        seen = [o for o in obs if o["event"] != "harvested"]
+        day = np.array([o["day"] for o in seen])
+        diam = np.array([o["diameter_m"] for o in seen], np.float64)
+        red = [o for o in seen if o["class_name"] == RED]
+        summary.append(dict(
+            track_id=tid, n_dates=len(seen), first_seq=seen[0]["seq"], first_date=seen[0]["date"],
+            last_date=seen[-1]["date"], first_day=seen[0]["day"], last_day=seen[-1]["day"],
+            set_date=seen[0]["date"] if seen[0]["event"] == "set" else None,
+            date_red=red[0]["date"] if red else None,
+            days_to_red=red[0]["day"] - seen[0]["day"] if red else np.nan,
+            date_harvested=harvested.date if harvested else None,
+            day_harvested=harvested.day if harvested else np.nan,
+            growth_mm_per_day=growth_rate_mm_per_day(day, diam),
+            diameter_first_m=diam[0], diameter_last_m=diam[-1],
+            class_first=seen[0]["class_name"], class_last=seen[-1]["class_name"],
+            x_m=seen[-1]["x_m"], y_m=seen[-1]["y_m"], z_m=seen[-1]["z_m"]))
+    tracks_df = pd.DataFrame(rows, columns=["seq", "date", "track_id", "day", "fruit_id", "diameter_m", "class_name",
+                                            "event", "x_m", "y_m", "z_m"])
+    tracks_df = tracks_df.astype({"track_id": "int32", "fruit_id": "Int32", "diameter_m": "float64"})
+    tracks_df = tracks_df.sort_values(["day", "track_id"], kind="stable").reset_index(drop=True)
+    summary_df = pd.DataFrame(summary, columns=SUMMARY_COLUMNS)
+    per_date = []
+    first_day = tracks_df.groupby("track_id").day.min()
+    for k, (row, t, reg) in enumerate(zip(dates, transforms, regs)):
+        on = tracks_df[tracks_df.seq == row.seq]
+        per_date.append(dict(
+            seq=row.seq, date=row.date, day=row.day, fruits=len(row.fruits),
+            continued=int((on.fruit_id.notna() & (on.track_id.map(first_day) < row.day)).sum()),
+            set=int((on.event == "set").sum()), harvested=int((on.event == "harvested").sum()),
+            registration_inliers=reg.inliers, registration_rms_m=reg.rms_m,
+            tx_m=float(t.transform[0, 3]), ty_m=float(t.transform[1, 3]), tz_m=float(t.transform[2, 3]),
+            yaw_deg=float(np.degrees(np.arctan2(t.transform[1, 0], t.transform[0, 0]))),
+            correction_max_m=float(np.linalg.norm(t(row.cameras_xyz) - registration.apply(t.transform, row.cameras_xyz),
+                                                  axis=1).max()) if len(row.cameras_xyz) else 0.0,
+            stretch_x_min_m=float(stretches[k][0]), stretch_x_max_m=float(stretches[k][1])))
+    return Season(tracks_df, summary_df, pd.DataFrame(per_date), transforms)
