@@ -164,8 +164,22 @@ def run_rows(seqs: list[str], data_root: Path = Path("data"), config_file: Path 
 
 def run_campaign(seqs: list[str], data_root: Path = Path("data"), config_file: Path | None = None,
                  overrides: list[str] | tuple[str, ...] = (), scheduler: str | None = None, force: bool = False,
-                 show_progress: bool | None = None) -> list[RowOutcome]:
-    """run_rows, then the campaign dataset and report under data/processed/_campaign/ (one atomic swap)."""
+                 show_progress: bool | None = None, track: bool = False) -> list[RowOutcome]:
+    """run_rows, then the campaign dataset and report under data/processed/_campaign/ (one atomic swap). With
+    `track`, the finished rows are first tracked as dates of one row (pipeline.season.track, into
+    data/processed/_season/) and the report gains a season section (none, with a warning, when fewer than two
+    rows finished)."""
+    if track and len(set(seqs)) < 2:
+        raise ValueError(f"pag campaign --track: a season needs at least two dates of the row, got {seqs}")
     outcomes = run_rows(seqs, data_root, config_file, overrides, scheduler, force, show_progress)
-    campaign_dataset.write(Path(data_root), outcomes)
+    section = ""
+    ok = [o.seq for o in outcomes if o.status == "ok"]
+    if track and len(ok) < 2:
+        print(f"[pag campaign] --track: only {ok} finished; no season tracked", file=sys.stderr)
+    elif track:
+        from pipeline import season, season_report
+
+        tracked, scores, _ = season.track(ok, Path(data_root))
+        section = season_report.section(tracked, scores, level=3)
+    campaign_dataset.write(Path(data_root), outcomes, section)
     return outcomes

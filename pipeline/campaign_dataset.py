@@ -152,9 +152,10 @@ def load_row(data_root: Path, seq: str) -> tuple[dict[str, pd.DataFrame], pd.Dat
     return tables, io.read_table(dataset("frames").path(data_root, seq), "frames")
 
 
-def write(data_root: Path, outcomes: list) -> Path:
+def write(data_root: Path, outcomes: list, season: str = "") -> Path:
     """Gather the finished rows of `outcomes` (pipeline.campaign.RowOutcome) into data/processed/_campaign/
-    (replacing the previous campaign's folder atomically); returns that folder."""
+    (replacing the previous campaign's folder atomically); returns that folder. `season`: the report's season
+    section (HTML), if the rows were tracked."""
     from pipeline import campaign_report
 
     final = campaign_dir(data_root)
@@ -186,7 +187,7 @@ def write(data_root: Path, outcomes: list) -> Path:
                                        b"pag.columns": json.dumps(columns).encode()})
         io.atomic_write_bytes(staging / "rows.parquet", parquet_bytes(t))
         combined = {name: pd.concat(dfs, ignore_index=True) if dfs else None for name, dfs in gathered.items()}
-        io.atomic_write_bytes(staging / "report.html", campaign_report.render(rows_df, combined).encode())
+        io.atomic_write_bytes(staging / "report.html", campaign_report.render(rows_df, combined, season).encode())
         io.swap_dir(staging, final)
     except Exception:
         shutil.rmtree(staging, ignore_errors=True)

@@ -105,8 +105,9 @@ def rows_table(rows: pd.DataFrame) -> str:
     return f'<table class="t"><tr>{head}</tr>{"".join(body)}</table>'
 
 
-def render(rows: pd.DataFrame, tables: dict[str, pd.DataFrame | None]) -> str:
-    """The page. `rows`: rows.parquet's content; `tables`: the rows' tables concatenated, with a `seq` column."""
+def render(rows: pd.DataFrame, tables: dict[str, pd.DataFrame | None], season: str = "") -> str:
+    """The page. `rows`: rows.parquet's content; `tables`: the rows' tables concatenated, with a `seq` column;
+    `season`: the season section's HTML (pipeline.season_report.section) of a campaign run with --track."""
     ok = rows[rows.status == "ok"]
     failed = rows[rows.status != "ok"]
     fruits = tables.get("fruits")
@@ -125,5 +126,8 @@ def render(rows: pd.DataFrame, tables: dict[str, pd.DataFrame | None]) -> str:
     parts.append(f'<img src="{size_chart(ok, fruits)}" alt="diameter per row">'
                  if len(ok) and fruits is not None and len(fruits) else "<p>No fruit.</p>")
     parts.append("<h2>Rows</h2>" + rows_table(rows))
+    if season:
+        parts.append("<h2>Season</h2><p>The finished rows tracked as dates of one row (`pag campaign --track`; "
+                     "the season dataset is data/processed/_season/, docs/season.md).</p>" + season)
     return ("<!DOCTYPE html><html><head><meta charset='utf-8'><title>PAg-NeRF campaign report</title>"
             f"<style>{CSS}</style></head><body>{''.join(parts)}</body></html>")

@@ -2,8 +2,9 @@
 
     pag <stage> --seq SEQ [--config FILE] [--set key=value ...] [--force]
     pag all --seq SEQ [--from STAGE] [--to STAGE] [--force]
-    pag campaign --seqs SEQ [SEQ ...] [--scheduler ADDRESS]   every row, windows on one Dask cluster,
-                                         then data/processed/_campaign/ (docs/campaign.md)
+    pag campaign --seqs SEQ [SEQ ...] [--scheduler ADDRESS] [--track]   every row, windows on one Dask
+                                         cluster, then data/processed/_campaign/ (docs/campaign.md); --track
+                                         also links the rows as dates of one row (docs/season.md)
     pag track --seqs SEQ[@DATE] ...      one row's season: fruits tracked across dates (docs/season.md)
     pag bench <name> [args ...]          (bench/<name>.py; `pag bench list`)
     pag config --seq SEQ [--doc]         resolved config (with field docs)
@@ -56,6 +57,8 @@ def parser() -> argparse.ArgumentParser:
                             "their tables into data/processed/_campaign/")
     p_camp.add_argument("--seqs", nargs="+", required=True, metavar="SEQ", help="sequence folders under data/raw/")
     _run_options(p_camp, "YAML file with config sections, and per-row ones under rows: {SEQ: {...}}")
+    p_camp.add_argument("--track", action="store_true", help="track the finished rows as dates of one row "
+                        "(as `pag track`, default track settings) and add a season section to the report")
     p_track = sub.add_parser("track", help="track one row's fruits across recording dates into "
                              "data/processed/_season/ (docs/season.md)")
     p_track.add_argument("--seqs", nargs="+", required=True, metavar="SEQ[@DATE]",
@@ -106,7 +109,7 @@ def _campaign(args: argparse.Namespace) -> int:
 
     outcomes = run_campaign(args.seqs, data_root=args.data_root, config_file=args.config,
                             overrides=list(args.overrides), scheduler=args.scheduler, force=args.force,
-                            show_progress=False if args.no_progress else None)
+                            show_progress=False if args.no_progress else None, track=args.track)
     failed = [o for o in outcomes if o.status != "ok"]
     for o in failed:
         print(f"pag campaign: row {o.seq} failed: {o.error}", file=sys.stderr)

@@ -65,17 +65,27 @@ def age_map(tracks: pd.DataFrame) -> str:
     return _figure_uri(fig)
 
 
+def section(season: Season, scores: dict[str, float], level: int = 2) -> str:
+    """The season's figures, dates and scores as HTML (headings at `level`), for the season report and the
+    campaign report's season section."""
+    t, d = season.tracks, season.dates
+    h = f"h{level}"
+    parts = []
+    if len(t):
+        parts += [f"<{h}>Growth</{h}>", f"<img src='{growth_chart(t)}' alt='growth curves'>",
+                  f"<{h}>Fruits by class, set and harvested</{h}>",
+                  f"<img src='{counts_chart(t, d)}' alt='counts by class per date'>",
+                  f"<{h}>Row map by fruit age</{h}>", f"<img src='{age_map(t)}' alt='row map by fruit age'>"]
+    parts += [f"<{h}>Dates</{h}>", d.to_html(classes="t", index=False, float_format=lambda v: f"{v:.3f}")]
+    if scores:
+        parts += [f"<{h}>Scores</{h}>", "<table class='t'>"] + [
+            f"<tr><th>{html.escape(k)}</th><td>{v:.4g}</td></tr>" for k, v in scores.items()] + ["</table>"]
+    return "\n".join(parts)
+
+
 def render(season: Season, scores: dict[str, float]) -> str:
     t, d = season.tracks, season.dates
-    parts = [f"<!doctype html><html><head><meta charset='utf-8'><title>Season</title><style>{CSS}</style></head><body>",
-             f"<h1>Season of {len(d)} dates, {t.track_id.nunique()} fruit tracks</h1>"]
-    if len(t):
-        parts += ["<h2>Growth</h2>", f"<img src='{growth_chart(t)}'>",
-                  "<h2>Fruits by class, set and harvested</h2>", f"<img src='{counts_chart(t, d)}'>",
-                  "<h2>Row map by fruit age</h2>", f"<img src='{age_map(t)}'>"]
-    parts += ["<h2>Dates</h2>", d.to_html(classes="t", index=False, float_format=lambda v: f"{v:.3f}")]
-    if scores:
-        parts += ["<h2>Scores</h2>", "<table class='t'>"] + [
-            f"<tr><th>{html.escape(k)}</th><td>{v:.4g}</td></tr>" for k, v in scores.items()] + ["</table>"]
-    parts.append("</body></html>")
-    return "\n".join(parts)
+    return "\n".join([
+        f"<!doctype html><html><head><meta charset='utf-8'><title>Season</title><style>{CSS}</style></head><body>",
+        f"<h1>Season of {len(d)} dates, {t.track_id.nunique()} fruit tracks</h1>", section(season, scores),
+        "</body></html>"])

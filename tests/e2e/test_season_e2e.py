@@ -85,14 +85,38 @@ def test_track_errors_are_one_paragraph(oracle, capsys):
     assert "YYYY-MM-DD" in capsys.readouterr().err
 
 
+def test_a_campaign_report_holds_the_season_section(oracle, capsys):
+    """The campaign report of a tracked campaign shows the season's figures (pag campaign --track)."""
+    import schemas
+    from pipeline import campaign_report, season, season_report
+
+    root, _ = oracle
+    seqs = [f"synth_season_s3_d{d:02d}" for d in DAYS]
+    tracked, scores, _ = season.track(seqs, root, name="_season_report_test")
+    page = campaign_report.render(schemas.empty("campaign_rows"), {}, season_report.section(tracked, scores, 3))
+    assert "<h2>Season</h2>" in page and page.count("<h3>") >= 4 and page.count("<img") == 3
+    assert all(s in page for s in seqs)                     # the dates table names every date
+    assert "<h2>Season</h2>" not in campaign_report.render(schemas.empty("campaign_rows"), {})
+    # a tracked campaign of one row is refused before anything runs
+    assert cli.main(["campaign", "--seqs", seqs[0], "--track", "--data-root", str(root)]) == 2
+    assert "at least two dates" in capsys.readouterr().err
+
+
 @pytest.mark.slow
-def test_a_tiny_season_through_the_whole_dag(tmp_path):
+def test_a_tiny_season_through_the_whole_dag_as_a_tracked_campaign(tmp_path):
     root = tmp_path / "data"
-    for day in (0, 7):
-        assert cli.main(["all", "--seq", f"synth_season_d{day:02d}", "--data-root", str(root), "--no-progress", *TINY,
-                         "--set", f"synth.day={day}"]) == 0
-    assert cli.main(["track", "--data-root", str(root), "--seqs", "synth_season_d00", "synth_season_d07"]) == 0
+    seqs = ["synth_season_d00", "synth_season_d07"]
+    config = tmp_path / "season.yaml"
+    config.write_text("rows:\n" + "".join(f"  {s}: {{synth: {{day: {int(s[-2:])}}}}}\n" for s in seqs))
+    assert cli.main(["campaign", "--seqs", *seqs, "--config", str(config), "--data-root", str(root), "--no-progress",
+                     "--track", *TINY]) == 0
     season_dir = root / "processed" / "_season"
     scores = pd.read_parquet(season_dir / "season_scores.parquet").set_index("metric").value
     assert 0 < scores["tracking_cost_share"] < 0.05
-    assert len(pd.read_parquet(season_dir / "season_dates.parquet")) == 2
+    dates = pd.read_parquet(season_dir / "season_dates.parquet")
+    assert list(dates.seq) == seqs and list(dates.day) == [0.0, 7.0]
+    report = (root / "processed" / "_campaign" / "report.html").read_text()
+    section = report.split("<h2>Season</h2>")[1]
+    assert all(s in section for s in seqs)                  # the dates table of the season section
+    tracked = (season_dir / "fruit_tracks").is_dir()        # tiny fits may count no fruit at all
+    assert ("row map by fruit age" in section) == tracked and section.count("<img") == 3 * tracked
