@@ -179,8 +179,8 @@ def write(final: Path, season: Season, scores: dict[str, float], cfg: Config) ->
     staging = io.staging_dir(final)
     try:
         tracks = season.tracks
-        for seq, part in tracks.groupby("seq", sort=False):
-            date = part.date.iloc[0]
+        for seq, date in zip(season.dates.seq, season.dates.date):   # every date, one with no track too
+            part = tracks[tracks.seq == seq]
             body = part.drop(columns=["seq", "date"]).reset_index(drop=True)
             io.atomic_write_bytes(staging / "fruit_tracks" / f"{PARTITION_COLUMN}={seq}" / "part-0.parquet",
                                   parquet_bytes(partition_table(body, "fruit_tracks", date)))
