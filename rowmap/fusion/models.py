@@ -14,7 +14,7 @@ from scipy.cluster.hierarchy import fcluster, linkage
 from scipy.spatial import cKDTree
 
 from nerf.panoptic.complete import sphere_boxes
-from nerf.surfaces import fruit_sphere, robust_centre
+from nerf.surfaces import fruit_sphere
 from rowmap.fusion.association import MIN_SPLIT_FRAMES, LocalFruit
 from rowmap.fusion.settings import Config
 from rowmap.geometry import subsample
@@ -191,22 +191,3 @@ def update(models: FruitModels, grown: dict[int, list[np.ndarray]], seg_views: d
             owners.update(split(out, f, views, cfg))
     return out, owners
 
-
-def segment_views(fruit: np.ndarray, segments: np.ndarray, points: np.ndarray, min_px: int) -> list[tuple]:
-    """(fruit id, segment id, pixels, centre [3], points [<=400, 3]) of the detector segments of one frame that
-    lie mostly on fruits, each given to the fruit holding most of it (at least min_px of its pixels). `fruit`,
-    `segments` [P]: the assigned fruit and segment of pixels with 3D points [P, 3]."""
-    on = (fruit > 0) & (segments > 0)
-    size = np.bincount(segments, minlength=1)
-    covered = np.bincount(segments[on], minlength=len(size))
-    key = fruit[on].astype(np.int64) * len(size) + segments[on]
-    keys, inverse, n = np.unique(key, return_inverse=True, return_counts=True)
-    out, taken = [], set()
-    for j in np.argsort(-n, kind="stable"):
-        f, s = divmod(int(keys[j]), len(size))
-        if n[j] < min_px or s in taken or 2 * covered[s] <= size[s]:
-            continue
-        taken.add(s)
-        pts = points[on][inverse == j]
-        out.append((f, s, int(n[j]), robust_centre(pts)[0], pts[:: max(1, len(pts) // 400)]))
-    return out
