@@ -1,13 +1,10 @@
-"""Fruit models: per row fruit its sphere, its seen surface and its detector support.
-
-`fit_models` builds them from the association; `FruitModels.query` answers, for 3D points of one frame, how
-far each point lies from each fruit's shape, surface and centre (the evidence); `update` refits them from one
-round's assignment: the points each fruit was given grow its seen surface (and fit a sphere where the render's
-points did not), and a fruit whose detector segments form clusters seen together is split."""
+"""Fruit models: per row fruit its sphere and its seen surface. `fit_models` builds them from the association,
+`FruitModels.query` answers for the 3D points of one frame (the evidence), `update` refits them after a round."""
 from __future__ import annotations
 
 from collections import defaultdict
 from dataclasses import dataclass
+from itertools import combinations
 
 import numpy as np
 from scipy.cluster.hierarchy import fcluster, linkage
@@ -137,13 +134,12 @@ def detector_clusters(views: list[tuple], ball: tuple | None, cfg: Config) -> tu
            for c in frames_of}
     largest = max(frames_of, key=px.get)
     together = set()
-    for a in frames_of:
-        for b in frames_of:
-            shared = len(frames_of[a] & frames_of[b]) if a < b else 0
-            if a < b and ((a in lasting and b in lasting and shared >= MIN_SPLIT_FRAMES)
-                          or (shared and off[min(a, b, key=px.get)] is not False)
-                          or (largest in (a, b) and off[a if b == largest else b] is True)):
-                together |= {a, b}
+    for a, b in combinations(sorted(frames_of), 2):
+        shared = len(frames_of[a] & frames_of[b])
+        if ((a in lasting and b in lasting and shared >= MIN_SPLIT_FRAMES)
+                or (shared and off[min(a, b, key=px.get)] is not False)
+                or (largest in (a, b) and off[a if b == largest else b] is True)):
+            together |= {a, b}
     if not together:
         return labels, []
     order = sorted(together, key=lambda c: -px[c])
