@@ -1,7 +1,5 @@
 """Fuse the windows' instance slots into row-level fruit ids and write per-frame panoptic PNGs with them.
-
-The algorithm is rowmap.fusion (docs/fusion.md); this file reads the renders, detector output and sensor
-depth, and writes the fused frames and tables."""
+The algorithm is rowmap.fusion (docs/fusion.md); this file reads its inputs and writes the fused frames."""
 from __future__ import annotations
 
 from collections import defaultdict
@@ -87,7 +85,8 @@ def read_slots(views: pd.DataFrame, frames: pd.DataFrame, renders: Renders, shar
 class FrameReader:
     """Reads one frame's inputs for the fusion: every window's render of it with its slots mapped to row
     fruits (`lut`), composed into one render label (render_label), the placing depth and the detector
-    segments. Keeps the composed semantic and depth of the frames read until `take` collects them."""
+    segments. Keeps {frame: (composed semantic, depth, whether any pixel came from another window than the
+    nearest)} in `kept` until the frame is written."""
 
     def __init__(self, frames: pd.DataFrame, renders: Renders, by_frame: dict[int, pd.DataFrame], codes: dict,
                  lut: dict, support: dict, dropped: dict, ctx: StageContext):
@@ -116,16 +115,12 @@ class FrameReader:
         return Frame(fid, label, with_sensor_depth(depth, self.ctx.abspath(fr.depth_path), fr.depth_scale_m),
                      fruit_segments(fr, self.ctx.data_root, self.dropped.get(fid)), intrinsics(fr), rows.c2w.iloc[0])
 
-    def take(self, fid: int) -> tuple[np.ndarray, np.ndarray, bool]:
-        """(semantic, depth, whether any pixel came from another window than the nearest) of frame fid."""
-        return self.kept.pop(fid)
-
 
 def write_frame(fid: int, fused: np.ndarray, models, reader: FrameReader, n_windows: int, out_dir: Path,
                 ctx: StageContext) -> dict:
     """Write one fused frame's PNGs (and its composed depth); its panoptic_frames row."""
     fr, r = reader.frames.loc[fid], reader.by_frame[fid].iloc[0]
-    sem_r, depth, composed = reader.take(fid)
+    sem_r, depth, composed = reader.kept.pop(fid)
     classes = np.zeros(max(models, default=0) + 1, np.uint8)
     classes[list(models)] = [m.class_id for m in models.values()]
     label = np.maximum(fused, 0)

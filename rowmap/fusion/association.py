@@ -122,14 +122,12 @@ def local_fruits(views: dict[tuple[int, int], dict], cfg: Config) -> list[LocalF
                 lf.drop_reason = f"{n_px} px < {MIN_SLOT_PX}"
             elif len(pts) == 0:
                 lf.drop_reason = "no pixel with valid rendered depth"
+            elif (fit := fruit_sphere(pts, cfg.max_fruit_radius_m, min_points=20)) is not None:
+                lf.centre, lf.median = fit[0], fit[2]
+                radii.append(fit[1])
             else:
-                fit = fruit_sphere(pts, cfg.max_fruit_radius_m, min_points=20)
-                lf.median = fit[2] if fit is not None else robust_centre(pts)[0]
-                lf.centre = fit[0] if fit is not None else lf.median
-                if fit is not None:
-                    radii.append(fit[1])
-                else:
-                    unfitted.append((lf, pts, np.average([sv.eye for sv in svs], 0, [len(sv.points) + 1e-9 for sv in svs])))
+                lf.centre = lf.median = robust_centre(pts)[0]
+                unfitted.append((lf, pts, np.average([sv.eye for sv in svs], 0, [len(sv.points) + 1e-9 for sv in svs])))
             local.append(lf)
     for lf, pts, eye in unfitted if radii else []:
         c = sphere_behind(pts, eye, float(np.median(radii)), min_points=20)

@@ -1,8 +1,6 @@
-"""Rounds: assign every frame, refit the fruit models from what they were given, assign again; the last
-round's assignment is the fused frame (written once, by the caller).
-
-Frames are independent within a round (the models change only between rounds), so they are worked on by
-several threads; results come back in frame order, so the output does not depend on the thread count."""
+"""Rounds: assign every frame, refit the fruit models from what they were given, assign again. Frames are
+independent within a round (the models change only between rounds), so several threads work on them; results
+come back in frame order, so the output does not depend on the thread count."""
 from __future__ import annotations
 
 import os
