@@ -1,7 +1,5 @@
 """Fuse the windows' instance slots into row-level fruit ids and write per-frame panoptic PNGs with them.
-
-The algorithm is rowmap.fusion (docs/fusion.md); this file reads the renders, detector output and sensor
-depth, and writes the fused frames and tables."""
+The algorithm is rowmap.fusion (docs/fusion.md); this file reads its inputs and writes the fused frames."""
 from __future__ import annotations
 
 from collections import defaultdict
@@ -37,10 +35,8 @@ def window_views(windows: pd.DataFrame, window_poses: pd.DataFrame, window_metri
     val = windows[windows.split == "val"][["window_id", "frame_id", "offset"]]
     v = val.merge(window_poses, on=["window_id", "frame_id"], how="inner", suffixes=("", "_pose"))
     rows = []
-    for wid, g in v.groupby("window_id"):
+    for wid, g in v[v.window_id.isin(ok)].groupby("window_id"):
         have = [renders.has(int(wid), int(f), *PANOPTIC_KINDS) for f in g.frame_id]
-        if int(wid) not in ok:
-            continue
         if not any(have):
             ctx.count("windows_without_panoptic_renders")
             ctx.note(f"window {wid}: no panoptic renders ({'/'.join(PANOPTIC_KINDS)}) in renders.parquet; skipped")
@@ -65,48 +61,44 @@ def intrinsics(fr) -> np.ndarray:
 
 def read_slots(views: pd.DataFrame, frames: pd.DataFrame, renders: Renders, shared: set[int], cfg: Config,
                ctx: StageContext) -> tuple[dict, dict, dict]:
-    """Every rendered frame's slot views ((window, slot) -> {(frame, group): SlotView}), the slot-code masks of
-    the frames several windows rendered ((window, frame) -> [H, W]) and each render's group map. The renders
-    are read and cut into slots on every core (in_order), in views' order."""
-    def read(r) -> tuple[int, int, dict, np.ndarray, np.ndarray | None]:
+    """Every rendered frame's slot views ((window, slot) -> {(frame, group): SlotView}) and slot-code map
+    ((window, frame) -> [H, W], 0 = no slot), and those maps of the frames several windows rendered (the
+    association's masks). The renders are read and cut into slots on every core (in_order), in views' order."""
+    def read(r) -> tuple[int, int, dict, np.ndarray]:
         wid, fid = int(r.window_id), int(r.frame_id)
         fr = frames.loc[fid]
         sem, inst, depth = (renders.read(wid, fid, k, (int(fr.height), int(fr.width))) for k in PANOPTIC_KINDS)
         sensor = with_sensor_depth(np.zeros_like(depth), ctx.abspath(fr.depth_path), fr.depth_scale_m)
         found, group = slot_views(sem, inst, depth, sensor, intrinsics(fr), r.c2w, list(THING_IDS), cfg)
-        mask = None
-        if fid in shared:
-            mask = np.where(np.isin(sem, THING_IDS) & (inst > 0), code(inst, group), 0).astype(np.int32)
-        return wid, fid, found, group, mask
+        return wid, fid, found, np.where(np.isin(sem, THING_IDS) & (inst > 0), code(inst, group), 0).astype(np.int32)
 
     per_slot: dict[tuple[int, int], dict] = defaultdict(dict)
-    masks, groups = {}, {}
+    codes = {}
     read_all = in_order(read, views.itertuples(index=False), default_threads())
-    for wid, fid, found, group, mask in ctx.progress(read_all, "read renders", total=len(views)):
+    for wid, fid, found, code_map in ctx.progress(read_all, "read renders", total=len(views)):
+        codes[(wid, fid)] = code_map
         for (slot, g), sv in found.items():
             per_slot[(wid, slot)][(fid, g)] = sv
-        groups[(wid, fid)] = group
-        if mask is not None:
-            masks[(wid, fid)] = mask
-    return per_slot, masks, groups
+    return per_slot, codes, {key: c for key, c in codes.items() if key[1] in shared}
 
 
 class FrameReader:
     """Reads one frame's inputs for the fusion: every window's render of it with its slots mapped to row
     fruits (`lut`), composed into one render label (render_label), the placing depth and the detector
-    segments. Keeps the composed semantic and depth of the frames read until `take` collects them."""
+    segments. Keeps {frame: (composed semantic, depth, whether any pixel came from another window than the
+    nearest)} in `kept` until the frame is written."""
 
-    def __init__(self, frames: pd.DataFrame, renders: Renders, by_frame: dict[int, pd.DataFrame], group_maps: dict,
+    def __init__(self, frames: pd.DataFrame, renders: Renders, by_frame: dict[int, pd.DataFrame], codes: dict,
                  lut: dict, support: dict, dropped: dict, ctx: StageContext):
-        self.frames, self.renders, self.by_frame, self.group_maps = frames, renders, by_frame, group_maps
+        self.frames, self.renders, self.by_frame, self.codes = frames, renders, by_frame, codes
         self.lut, self.support, self.dropped, self.ctx = lut, support, dropped, ctx
         self.kept: dict[int, tuple[np.ndarray, np.ndarray, bool]] = {}
 
     def window_label(self, w: int, fid: int, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(semantic, row fruit ids (0 stuff, -1 a dropped slot), depth) of window w's render of frame fid."""
-        sem, inst, depth = (self.renders.read(w, fid, k, shape) for k in PANOPTIC_KINDS)
-        codes = code(inst.astype(np.int64), self.group_maps[(w, fid)])
-        thing = np.isin(sem, THING_IDS) & (inst > 0)
+        sem, depth = (self.renders.read(w, fid, k, shape) for k in ("semantic", "depth"))
+        codes = self.codes[(w, fid)]
+        thing = codes != 0
         keys = np.unique(codes[thing])
         mapped = np.array([self.lut[(w, fid)].get(int(c), 0) for c in keys], np.int64)
         label = np.zeros(shape, np.int64)
@@ -123,16 +115,12 @@ class FrameReader:
         return Frame(fid, label, with_sensor_depth(depth, self.ctx.abspath(fr.depth_path), fr.depth_scale_m),
                      fruit_segments(fr, self.ctx.data_root, self.dropped.get(fid)), intrinsics(fr), rows.c2w.iloc[0])
 
-    def take(self, fid: int) -> tuple[np.ndarray, np.ndarray, bool]:
-        """(semantic, depth, whether any pixel came from another window than the nearest) of frame fid."""
-        return self.kept.pop(fid)
-
 
 def write_frame(fid: int, fused: np.ndarray, models, reader: FrameReader, n_windows: int, out_dir: Path,
                 ctx: StageContext) -> dict:
     """Write one fused frame's PNGs (and its composed depth); its panoptic_frames row."""
     fr, r = reader.frames.loc[fid], reader.by_frame[fid].iloc[0]
-    sem_r, depth, composed = reader.take(fid)
+    sem_r, depth, composed = reader.kept.pop(fid)
     classes = np.zeros(max(models, default=0) + 1, np.uint8)
     classes[list(models)] = [m.class_id for m in models.values()]
     label = np.maximum(fused, 0)
@@ -186,13 +174,13 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
                          f"frames.parquet; rerun the pipeline from ingest")
     n_win = views.groupby("frame_id").window_id.nunique()
     shared = set(n_win[n_win > 1].index.astype(int))
-    per_slot, masks, group_maps = read_slots(views, frames, renders, shared, cfg, ctx)
+    per_slot, codes, masks = read_slots(views, frames, renders, shared, cfg, ctx)
     local, groups = row_fruits(per_slot, masks, cfg)
     if len(groups) > 65535:
         raise ValueError(f"panoptic_fusion: {len(groups)} fruits do not fit 16-bit instance PNGs (max 65535)")
     pick = views.assign(abs_off=views.offset.abs()).sort_values(["frame_id", "abs_off", "window_id"])
     by_frame = {int(f): g for f, g in pick.groupby("frame_id", sort=True)}
-    reader = FrameReader(frames, renders, by_frame, group_maps, *slot_table(local),
+    reader = FrameReader(frames, renders, by_frame, codes, *slot_table(local),
                          dropped_segments(inputs.get("detections_filtered")), ctx)
     rows, models = [], fit_models(groups, local, per_slot, cfg)
     for fid, fused, models in fuse(sorted(by_frame), reader, models, cfg, ctx.progress):

@@ -1,22 +1,15 @@
 """Fusion of the windows' panoptic renders into row-level fruit ids (the panoptic_fusion stage's algorithm).
 
-The path of one pixel:
-1. association.py: the windows' slots become local fruits, then row fruits (`associate`); each rendered
-   pixel's slot maps to a row fruit id.
-2. evidence.py: in each frame the renders of the windows that rendered it give one render label per pixel
-   (`render_label`); `frame_evidence` adds the detector segment, and from the fruit models (models.py) the
-   distance of the pixel's 3D point to each candidate fruit's sphere, seen surface and centre.
-3. assignment.py: the pixel takes the option (background or a fruit) of least cost, a weighted sum of five terms.
-4. rounds.py: with refine_rounds > 0 every frame is assigned, the models are refitted (seen surfaces grown,
-   fruits the detector shows as several split), and the frames are assigned again; the last round is written.
-"""
-from rowmap.fusion.assignment import WEIGHTS, assign, cost, terms
-from rowmap.fusion.association import associate, local_fruits, slot_views
-from rowmap.fusion.evidence import Evidence, Frame, frame_evidence, render_label
-from rowmap.fusion.models import FruitModel, FruitModels, fit_models, update
+One module per step of a pixel's path (docs/fusion.md): association.py turns the windows' slots into row
+fruits; models.py fits each fruit a sphere and a seen surface; evidence.py says, per pixel of a frame, what
+the render, the detector and the models show; assignment.py gives the pixel the option of least cost;
+rounds.py assigns every frame, refits the models and assigns again."""
+from rowmap.fusion.assignment import cost, terms
+from rowmap.fusion.association import slot_views
+from rowmap.fusion.evidence import Frame, frame_evidence, render_label
+from rowmap.fusion.models import FruitModel, FruitModels, fit_models
 from rowmap.fusion.rounds import default_threads, fuse, fused_label, in_order
 from rowmap.fusion.settings import TERMS, Config
 
-__all__ = ["WEIGHTS", "TERMS", "Config", "Evidence", "Frame", "FruitModel", "FruitModels", "assign", "associate",
-           "cost", "default_threads", "fit_models", "frame_evidence", "fuse", "fused_label", "in_order",
-           "local_fruits", "render_label", "slot_views", "terms", "update"]
+__all__ = ["TERMS", "Config", "Frame", "FruitModel", "FruitModels", "cost", "default_threads", "fit_models",
+           "frame_evidence", "fuse", "fused_label", "in_order", "render_label", "slot_views", "terms"]

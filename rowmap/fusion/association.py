@@ -1,13 +1,11 @@
-"""Association: window slots -> local fruits -> row fruits.
-
-A window's render paints each fruit it saw with a slot id. Per rendered frame a slot's pixels split into
-groups at 3D gaps (one slot painted over two fruits); a slot whose groups' centres lie in clusters apart is
-several local fruits. Local fruits of different windows are one row fruit when their centres are close and
-their masks overlap on the frames both windows rendered (Hungarian per window pair, then union-find)."""
+"""Association: window slots -> local fruits (a slot's pixel groups that lie together) -> row fruits (local
+fruits of different windows with close centres and overlapping masks: Hungarian per window pair, then
+union-find)."""
 from __future__ import annotations
 
 from collections import defaultdict
 from dataclasses import dataclass
+from itertools import combinations
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
@@ -62,10 +60,10 @@ class LocalFruit:
     median: np.ndarray | None = None
 
 
-def slot_views(sem: np.ndarray, inst: np.ndarray, depth: np.ndarray, sensor: np.ndarray | None, k: np.ndarray,
+def slot_views(sem: np.ndarray, inst: np.ndarray, depth: np.ndarray, sensor: np.ndarray, k: np.ndarray,
                c2w: np.ndarray, thing_ids: list[int], cfg: Config) -> tuple[dict, np.ndarray]:
     """The slot views of one rendered frame ({(slot, group): SlotView}) and its group map [H, W] (0 = the
-    slot's largest group or no slot). `sensor`: the recorded z-depth in m (0 = none) or None."""
+    slot's largest group or no slot). `sensor`: the recorded z-depth in m (0 = none)."""
     thing = np.isin(sem, thing_ids) & (inst > 0)
     group = np.zeros(inst.shape, np.int32)
     out = {}
@@ -81,9 +79,8 @@ def slot_views(sem: np.ndarray, inst: np.ndarray, depth: np.ndarray, sensor: np.
         for g in range(int(labels.max()) + 1):
             mine = labels == g
             pts_g = pts[labels[good] == g]
-            offset = None
-            both = mine & good & (sensor[vv, uu] > 0) if sensor is not None else None
-            if both is not None and both.any():
+            offset, both = None, mine & good & (sensor[vv, uu] > 0)
+            if both.any():
                 sel = subsample(int(both.sum()), MAX_POINTS)
                 vb, ub = vv[both][sel], uu[both][sel]
                 offset = np.median(unproject(sensor, k, c2w, vb, ub) - unproject(depth, k, c2w, vb, ub), 0)
@@ -125,14 +122,12 @@ def local_fruits(views: dict[tuple[int, int], dict], cfg: Config) -> list[LocalF
                 lf.drop_reason = f"{n_px} px < {MIN_SLOT_PX}"
             elif len(pts) == 0:
                 lf.drop_reason = "no pixel with valid rendered depth"
+            elif (fit := fruit_sphere(pts, cfg.max_fruit_radius_m, min_points=20)) is not None:
+                lf.centre, lf.median = fit[0], fit[2]
+                radii.append(fit[1])
             else:
-                fit = fruit_sphere(pts, cfg.max_fruit_radius_m, min_points=20)
-                lf.median = fit[2] if fit is not None else robust_centre(pts)[0]
-                lf.centre = fit[0] if fit is not None else lf.median
-                if fit is not None:
-                    radii.append(fit[1])
-                else:
-                    unfitted.append((lf, pts, np.average([sv.eye for sv in svs], 0, [len(sv.points) + 1e-9 for sv in svs])))
+                lf.centre = lf.median = robust_centre(pts)[0]
+                unfitted.append((lf, pts, np.average([sv.eye for sv in svs], 0, [len(sv.points) + 1e-9 for sv in svs])))
             local.append(lf)
     for lf, pts, eye in unfitted if radii else []:
         c = sphere_behind(pts, eye, float(np.median(radii)), min_points=20)
@@ -152,14 +147,10 @@ class MaskOverlaps:
 
     def __init__(self, masks: dict[tuple[int, int], np.ndarray]):
         self.masks, self._joint = masks, {}
-        by_frame: dict[int, list[int]] = defaultdict(list)
-        for w, f in masks:
-            by_frame[f].append(w)
-        self.shared: dict[tuple[int, int], list[int]] = defaultdict(list)
-        for f, ws in sorted(by_frame.items()):
-            for i, wa in enumerate(sorted(ws)):
-                for wb in sorted(ws)[i + 1:]:
-                    self.shared[(wa, wb)].append(f)
+        self.shared: dict[tuple[int, int], list[int]] = defaultdict(list)   # window pair -> frames both rendered
+        for f in sorted({f for _, f in masks}):
+            for pair in combinations(sorted(w for w, g in masks if g == f), 2):
+                self.shared[pair].append(f)
 
     def frames(self, wa: int, wb: int) -> list[int]:
         """The frames windows wa and wb both rendered."""
@@ -203,9 +194,9 @@ def pair_cost(a: LocalFruit, b: LocalFruit, overlaps: MaskOverlaps, cfg: Config)
     """distance / max_match_distance_m + (1 - mask IoU) of two local fruits of different windows (IoU 0.5 where
     no shared frame shows them); inf past the gate, or under min_mask_iou. Masks lying inside one another by
     STRONG_OVERLAP match up to twice the gate (a window that saw a fruit as a sliver centres it poorly)."""
-    if a.centre is None or b.centre is None or centre_distance(a, b) > 2 * cfg.max_match_distance_m:
+    dist = np.inf if a.centre is None or b.centre is None else centre_distance(a, b)
+    if dist > 2 * cfg.max_match_distance_m:
         return np.inf
-    dist = centre_distance(a, b)
     inter, union, smaller = overlaps.overlap(a.window_id, frame_codes([a]), b.window_id, frame_codes([b]))
     iou = inter / union if union else 0.5
     if (union and iou < cfg.min_mask_iou) or (
@@ -220,19 +211,18 @@ def candidate_pairs(fruits: list[LocalFruit], overlaps: MaskOverlaps, cfg: Confi
     for i, lf in enumerate(fruits):
         if lf.centre is not None:
             by_window[lf.window_id].append(i)
-    wids, edges = sorted(by_window), []
-    for a_i, wa in enumerate(wids):
-        for wb in wids[a_i + 1:]:
-            ia, ib = by_window[wa], by_window[wb]
-            ca, cb = np.stack([fruits[i].centre for i in ia]), np.stack([fruits[j].centre for j in ib])
-            near = np.linalg.norm(ca[:, None] - cb[None], axis=2) <= 4 * cfg.max_match_distance_m   # cheap pre-gate
-            cost = np.full(near.shape, np.inf)
-            for r, c in zip(*np.nonzero(near)):
-                cost[r, c] = pair_cost(fruits[ia[r]], fruits[ib[c]], overlaps, cfg)
-            finite = np.isfinite(cost)
-            if finite.any():
-                rows, cols = linear_sum_assignment(np.where(finite, cost, 1e6))
-                edges += [(float(cost[r, c]), ia[r], ib[c]) for r, c in zip(rows, cols) if finite[r, c]]
+    edges = []
+    for wa, wb in combinations(sorted(by_window), 2):
+        ia, ib = by_window[wa], by_window[wb]
+        ca, cb = np.stack([fruits[i].centre for i in ia]), np.stack([fruits[j].centre for j in ib])
+        near = np.linalg.norm(ca[:, None] - cb[None], axis=2) <= 4 * cfg.max_match_distance_m   # cheap pre-gate
+        cost = np.full(near.shape, np.inf)
+        for r, c in zip(*np.nonzero(near)):
+            cost[r, c] = pair_cost(fruits[ia[r]], fruits[ib[c]], overlaps, cfg)
+        finite = np.isfinite(cost)
+        if finite.any():
+            rows, cols = linear_sum_assignment(np.where(finite, cost, 1e6))
+            edges += [(float(cost[r, c]), ia[r], ib[c]) for r, c in zip(rows, cols) if finite[r, c]]
     return edges
 
 
@@ -247,20 +237,16 @@ def associate(fruits: list[LocalFruit], masks: dict[tuple[int, int], np.ndarray]
     codes = [frame_codes([lf]) for lf in fruits]
 
     def compatible(a: list[int], b: list[int]) -> bool:
-        for i in a:
-            for j in b:
-                if fruits[i].window_id == fruits[j].window_id and (
-                        codes[i].keys() & codes[j].keys() or centre_distance(fruits[i], fruits[j]) > cfg.max_match_distance_m):
-                    return False
+        if any(fruits[i].window_id == fruits[j].window_id and (codes[i].keys() & codes[j].keys()
+               or centre_distance(fruits[i], fruits[j]) > cfg.max_match_distance_m) for i in a for j in b):
+            return False
         by_w: dict[int, list[LocalFruit]] = defaultdict(list)
         for i in a + b:
             by_w[fruits[i].window_id].append(fruits[i])
-        ws = sorted(by_w)
-        for x, wa in enumerate(ws):
-            for wb in ws[x + 1:]:
-                inter, union, _ = overlaps.overlap(wa, frame_codes(by_w[wa]), wb, frame_codes(by_w[wb]))
-                if union and inter / union < cfg.min_mask_iou:
-                    return False
+        for wa, wb in combinations(sorted(by_w), 2):
+            inter, union, _ = overlaps.overlap(wa, frame_codes(by_w[wa]), wb, frame_codes(by_w[wb]))
+            if union and inter / union < cfg.min_mask_iou:
+                return False
         return True
 
     def join(ra: int, rb: int) -> None:

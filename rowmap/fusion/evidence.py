@@ -53,9 +53,8 @@ class Evidence:
 def render_label(labels: list[np.ndarray], support: list[dict[int, float]]) -> tuple[np.ndarray, np.ndarray]:
     """([H, W] one render label per pixel, [H, W] the window it came from) from the renders several windows
     made of a frame (`labels`: fruit ids, 0 stuff, -1 void; the nearest window first; `support`: per window
-    {fruit: how well it saw it}). A fruit's label counts from the window that saw it best of those showing it here; then stuff; then a
-    fruit from another window; ties go to the nearer window. A window that saw a fruit only while it entered
-    its stretch of row renders it smaller, or with a neighbour's id."""
+    {fruit: how well it saw it}). First a fruit from the window that saw it best, then stuff, then a fruit
+    from another window (which may have seen it only entering its stretch of row); ties: the nearer window."""
     best: dict[int, tuple[float, int]] = {}   # among the windows that show the fruit in this frame
     for j, (s, lab) in enumerate(zip(support, labels)):
         for f in np.unique(lab[lab > 0]).tolist():
@@ -92,14 +91,11 @@ def frame_evidence(frame: Frame, models: FruitModels, owners: dict[tuple[int, in
     ids = np.array(sorted(set(np.unique(frame.label[frame.label > 0]).tolist()) | set(boxes)), np.int64)
     seg = frame.segments if frame.segments is not None else np.zeros((h, w), np.int64)
     # a pixel only background can take: no render fruit, no segment, outside every fruit's halo ball
-    v, u = np.nonzero(((frame.label != 0) | (seg > 0)) & (frame.depth > 0))
-    keep = np.zeros((h, w), bool)
-    keep[v, u] = True
+    keep = ((frame.label != 0) | (seg > 0)) & (frame.depth > 0)
     for f, (v0, v1, u0, u1) in boxes.items():
         bv, bu = np.nonzero((frame.depth[v0:v1, u0:u1] > 0) & ~keep[v0:v1, u0:u1])
         p = unproject(frame.depth, frame.k, frame.c2w, bv + v0, bu + u0)
-        m = models[f]
-        near = np.linalg.norm(p - m.centre, axis=1) <= m.radius * cfg.halo_factor + cfg.margin_m
+        near = np.linalg.norm(p - models[f].centre, axis=1) <= models[f].radius * cfg.halo_factor + cfg.margin_m
         keep[bv[near] + v0, bu[near] + u0] = True
     v, u = np.nonzero(keep)
     points = unproject(frame.depth, frame.k, frame.c2w, v, u)
@@ -114,13 +110,12 @@ def frame_evidence(frame: Frame, models: FruitModels, owners: dict[tuple[int, in
     render = column[np.maximum(frame.label[v, u], 0)]
     segment = seg[v, u]
     detector = np.where(segment > 0, column[owner[segment]], -1)
-    confidence = np.ones(len(v))
-    band = int(np.ceil(BORDER_BAND_PX * np.sqrt(max(1.0, h * w / BASE_PIXELS))))
-    confidence[(v < band) | (v >= h - band) | (u < band) | (u >= w - band)] = BORDER_CONFIDENCE
+    scale = max(1.0, h * w / BASE_PIXELS)   # image pixels per reference pixel
+    band = int(np.ceil(BORDER_BAND_PX * np.sqrt(scale)))
+    border = (v < band) | (v >= h - band) | (u < band) | (u >= w - band)
     hidden = (render == 0)[:, None] & (gap <= cfg.margin_m) & ~(beyond > cfg.margin_m)   # [P, F]
     n_hidden = hidden.sum(0)
     shown = np.bincount(render, minlength=len(ids) + 1)[1:]
-    cover = np.where(n_hidden >= MIN_HIDDEN_PX * max(1.0, h * w / BASE_PIXELS), shown / np.maximum(n_hidden, 1), 1.0)
-    cover = np.minimum(cover, 1.0)
-    confidence = np.minimum(confidence, np.where(hidden, cover[None], 1.0).min(1, initial=1.0))
+    cover = np.minimum(np.where(n_hidden >= MIN_HIDDEN_PX * scale, shown / np.maximum(n_hidden, 1), 1.0), 1.0)
+    confidence = np.minimum(np.where(border, BORDER_CONFIDENCE, 1.0), np.where(hidden, cover[None], 1.0).min(1, initial=1.0))
     return Evidence(v * w + u, ids, points, render, confidence, detector, segment, rel, beyond, gap, radii)

@@ -1,20 +1,17 @@
-"""Fruit models: per row fruit its sphere, its seen surface and its detector support.
-
-`fit_models` builds them from the association; `FruitModels.query` answers, for 3D points of one frame, how
-far each point lies from each fruit's shape, surface and centre (the evidence); `update` refits them from one
-round's assignment: the points each fruit was given grow its seen surface (and fit a sphere where the render's
-points did not), and a fruit whose detector segments form clusters seen together is split."""
+"""Fruit models: per row fruit its sphere and its seen surface. `fit_models` builds them from the association,
+`FruitModels.query` answers for the 3D points of one frame (the evidence), `update` refits them after a round."""
 from __future__ import annotations
 
 from collections import defaultdict
 from dataclasses import dataclass
+from itertools import combinations
 
 import numpy as np
 from scipy.cluster.hierarchy import fcluster, linkage
 from scipy.spatial import cKDTree
 
 from nerf.panoptic.complete import sphere_boxes
-from nerf.surfaces import fruit_sphere, robust_centre
+from nerf.surfaces import fruit_sphere
 from rowmap.fusion.association import MIN_SPLIT_FRAMES, LocalFruit
 from rowmap.fusion.settings import Config
 from rowmap.geometry import subsample
@@ -137,13 +134,12 @@ def detector_clusters(views: list[tuple], ball: tuple | None, cfg: Config) -> tu
            for c in frames_of}
     largest = max(frames_of, key=px.get)
     together = set()
-    for a in frames_of:
-        for b in frames_of:
-            shared = len(frames_of[a] & frames_of[b]) if a < b else 0
-            if a < b and ((a in lasting and b in lasting and shared >= MIN_SPLIT_FRAMES)
-                          or (shared and off[min(a, b, key=px.get)] is not False)
-                          or (largest in (a, b) and off[a if b == largest else b] is True)):
-                together |= {a, b}
+    for a, b in combinations(sorted(frames_of), 2):
+        shared = len(frames_of[a] & frames_of[b])
+        if ((a in lasting and b in lasting and shared >= MIN_SPLIT_FRAMES)
+                or (shared and off[min(a, b, key=px.get)] is not False)
+                or (largest in (a, b) and off[a if b == largest else b] is True)):
+            together |= {a, b}
     if not together:
         return labels, []
     order = sorted(together, key=lambda c: -px[c])
@@ -191,22 +187,3 @@ def update(models: FruitModels, grown: dict[int, list[np.ndarray]], seg_views: d
             owners.update(split(out, f, views, cfg))
     return out, owners
 
-
-def segment_views(fruit: np.ndarray, segments: np.ndarray, points: np.ndarray, min_px: int) -> list[tuple]:
-    """(fruit id, segment id, pixels, centre [3], points [<=400, 3]) of the detector segments of one frame that
-    lie mostly on fruits, each given to the fruit holding most of it (at least min_px of its pixels). `fruit`,
-    `segments` [P]: the assigned fruit and segment of pixels with 3D points [P, 3]."""
-    on = (fruit > 0) & (segments > 0)
-    size = np.bincount(segments, minlength=1)
-    covered = np.bincount(segments[on], minlength=len(size))
-    key = fruit[on].astype(np.int64) * len(size) + segments[on]
-    keys, inverse, n = np.unique(key, return_inverse=True, return_counts=True)
-    out, taken = [], set()
-    for j in np.argsort(-n, kind="stable"):
-        f, s = divmod(int(keys[j]), len(size))
-        if n[j] < min_px or s in taken or 2 * covered[s] <= size[s]:
-            continue
-        taken.add(s)
-        pts = points[on][inverse == j]
-        out.append((f, s, int(n[j]), robust_centre(pts)[0], pts[:: max(1, len(pts) // 400)]))
-    return out

@@ -1,8 +1,6 @@
-"""Rounds: assign every frame, refit the fruit models from what they were given, assign again; the last
-round's assignment is the fused frame (written once, by the caller).
-
-Frames are independent within a round (the models change only between rounds), so they are worked on by
-several threads; results come back in frame order, so the output does not depend on the thread count."""
+"""Rounds: assign every frame, refit the fruit models from what they were given, assign again. Frames are
+independent within a round (the models change only between rounds), so several threads work on them; results
+come back in frame order, so the output does not depend on the thread count."""
 from __future__ import annotations
 
 import os
@@ -14,10 +12,11 @@ from typing import Any
 
 import numpy as np
 
+from nerf.surfaces import robust_centre
 from rowmap.fusion.assignment import assign
+from rowmap.fusion.association import MAX_POINTS, MIN_GROUP_PX
 from rowmap.fusion.evidence import Frame, frame_evidence
-from rowmap.fusion.models import FruitModels, segment_views, update
-from rowmap.fusion.association import MIN_GROUP_PX, MAX_POINTS
+from rowmap.fusion.models import FruitModels, update
 from rowmap.fusion.settings import Config
 from rowmap.geometry import subsample
 
@@ -54,16 +53,26 @@ def default_threads() -> int:
 
 
 def round_views(frame: Frame, models: FruitModels, owners: dict, cfg: Config) -> tuple[list, list]:
-    """What one frame of a round gives the refit: [(fruit, its pixels' points (MAX_POINTS at most))] and the
-    frame's detector segments mostly on one fruit [(fruit, frame, segment, ...)] (segment_views)."""
+    """What one frame of a round gives the refit: [(fruit, its pixels' points)] and [(fruit, (frame, segment,
+    pixels, centre [3], points))] of the detector segments lying mostly on fruits, each given to the fruit
+    holding most of it (at least MIN_GROUP_PX of its pixels)."""
     _, ev, ids = fused_label(frame, models, owners, cfg)
-    order = np.argsort(ids, kind="stable")
-    starts = np.flatnonzero(np.r_[True, ids[order][1:] != ids[order][:-1]]) if len(ids) else []
-    grown = [(int(ids[order[s0]]), ev.points[order[s0:s1][subsample(s1 - s0, MAX_POINTS)]])
-             for s0, s1 in zip(starts, np.r_[starts[1:], len(ids)] if len(ids) else []) if ids[order[s0]] > 0]
-    segs = []
-    if frame.segments is not None and cfg.detector_split_m > 0:
-        segs = [(f, frame.frame_id, *view) for f, *view in segment_views(ids, ev.segment, ev.points, MIN_GROUP_PX)]
+    grown, segs, taken = [], [], set()
+    for f in np.unique(ids[ids > 0]):
+        pts = ev.points[ids == f]
+        grown.append((int(f), pts[subsample(len(pts), MAX_POINTS)]))
+    if cfg.detector_split_m <= 0:
+        return grown, segs
+    on = (ids > 0) & (ev.segment > 0)
+    size = np.bincount(ev.segment, minlength=1)
+    covered = np.bincount(ev.segment[on], minlength=len(size))
+    keys, inverse, n = np.unique(ids[on] * len(size) + ev.segment[on], return_inverse=True, return_counts=True)
+    for j in np.argsort(-n, kind="stable"):
+        f, s = divmod(int(keys[j]), len(size))
+        if n[j] >= MIN_GROUP_PX and 2 * covered[s] > size[s] and s not in taken:
+            taken.add(s)
+            pts = ev.points[on][inverse == j]
+            segs.append((f, (frame.frame_id, s, int(n[j]), robust_centre(pts)[0], pts[:: max(1, len(pts) // 400)])))
     return grown, segs
 
 
@@ -82,8 +91,8 @@ def fuse(frame_ids: Iterable[int], load: Callable[[int], Frame], models: FruitMo
         for points, segs in progress(views, f"fusion round {r + 1}", len(frame_ids)):
             for f, pts in points:
                 grown[f].append(pts)
-            for f, *view in segs:
-                seg_views[f].append(tuple(view))
+            for f, view in segs:
+                seg_views[f].append(view)
         models, owners = update(models, grown, seg_views, cfg)
     fused = in_order(lambda fid: (fid, fused_label(load(fid), models, owners, cfg)[0]), frame_ids, threads)
     for fid, out in progress(fused, "write fused frames", len(frame_ids)):

@@ -31,18 +31,13 @@ class Config:
     """bring every window into the first window's frame through the frames they share (off: own frames)."""
 
     def __post_init__(self) -> None:
-        for name in ("max_match_distance_m", "max_fruit_radius_m", "margin_m"):
-            if not getattr(self, name) > 0:
-                raise ValueError(f"panoptic_fusion.{name} must be > 0, got {getattr(self, name)}")
-        if not 0.0 <= self.min_mask_iou <= 1.0:
-            raise ValueError(f"panoptic_fusion.min_mask_iou must be in [0, 1], got {self.min_mask_iou}")
-        for name in ("group_gap_m", "detector_split_m"):
-            if not getattr(self, name) >= 0:
-                raise ValueError(f"panoptic_fusion.{name} must be >= 0, got {getattr(self, name)}")
-        if not self.halo_factor >= 1:
-            raise ValueError(f"panoptic_fusion.halo_factor must be >= 1, got {self.halo_factor}")
-        if self.refine_rounds not in range(4):
-            raise ValueError(f"panoptic_fusion.refine_rounds must be 0-3, got {self.refine_rounds}")
+        ranges = {"max_match_distance_m": ("> 0", lambda v: v > 0), "max_fruit_radius_m": ("> 0", lambda v: v > 0),
+                  "margin_m": ("> 0", lambda v: v > 0), "min_mask_iou": ("in [0, 1]", lambda v: 0.0 <= v <= 1.0),
+                  "group_gap_m": (">= 0", lambda v: v >= 0), "detector_split_m": (">= 0", lambda v: v >= 0),
+                  "halo_factor": (">= 1", lambda v: v >= 1), "refine_rounds": ("0-3", lambda v: v in range(4))}
+        for name, (what, ok) in ranges.items():
+            if not ok(getattr(self, name)):
+                raise ValueError(f"panoptic_fusion.{name} must be {what}, got {getattr(self, name)}")
         unknown = sorted(set(self.terms_off) - set(TERMS))
         if unknown:
             raise ValueError(f"panoptic_fusion.terms_off: unknown terms {unknown}; terms: {list(TERMS)}")
