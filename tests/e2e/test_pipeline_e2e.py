@@ -92,7 +92,7 @@ def test_step_profile_splits_the_steps_time_into_groups_and_rates_the_encoding(r
     assert enc.seconds > 0 and enc.fraction_of_limit > 0  # the kernel ran and the machine's floor was timed
     assert (df.op.dropna().str.len() > 0).all() and len(df[df.group.str.startswith("op:")]) <= 15
     assert step_profile.main(["--seq", "synth_tiny", "--data-root", str(run_dir), "--out", str(tmp_path),
-                              "--steps", "50", "--scaling", "1,2", "--rounds", "1"]) == 0
+                              "--steps", "8", "--scaling", "1,2", "--rounds", "1"]) == 0
     scaling = pd.read_parquet(tmp_path / "step_threads.parquet").set_index("threads")
     assert list(scaling.index) == [1, 2] and (scaling.median_ms_per_step > 0).all()
     assert scaling.loc[1, "speedup"] == 1.0
