@@ -75,6 +75,12 @@ def score_variant(data_root: Path, seq: str, off: dict[str, object]) -> dict[str
     return out
 
 
+def verdict(helps: list[str], hurts: list[str]) -> str:
+    """'mixed' if a piece helps some rows and hurts others, 'keep' if it only helps, 'drop' if it only hurts,
+    'no effect' if neither (also the verdict of `pag bench fusion_terms`)."""
+    return "mixed" if helps and hurts else "keep" if helps else "drop" if hurts else "no effect"
+
+
 def verdicts(df: pd.DataFrame) -> pd.DataFrame:
     """Per rule: rows it helps (F1 falls with it off), rows it hurts (F1 rises) and the verdict."""
     base = df[df.variant == "all rules"].set_index("seq").f1
@@ -84,9 +90,8 @@ def verdicts(df: pd.DataFrame) -> pd.DataFrame:
         delta = (off - base.reindex(off.index)).dropna()
         helps = sorted(delta.index[delta < -TOLERANCE])
         hurts = sorted(delta.index[delta > TOLERANCE])
-        verdict = "mixed" if helps and hurts else "keep" if helps else "drop" if hurts else "no effect"
         out.append({"seq": "", "variant": f"{rule} off", "rule": rule, "helps": ",".join(helps),
-                    "hurts": ",".join(hurts), "verdict": verdict})
+                    "hurts": ",".join(hurts), "verdict": verdict(helps, hurts)})
     return pd.DataFrame(out)
 
 

@@ -30,7 +30,7 @@ import numpy as np
 import pandas as pd
 
 from bench._common import run_stages, write_parquet
-from bench.count_rules import family_seqs, row_config
+from bench.count_rules import family_seqs, row_config, verdict
 from pipeline.catalog import dataset
 from rowmap.fusion import TERMS
 
@@ -77,9 +77,8 @@ def verdicts(df: pd.DataFrame) -> pd.DataFrame:
         signs = {seq: effect(base.loc[seq], off.loc[seq]) for seq in off.index if seq in base.index}
         helps = sorted(s for s, e in signs.items() if e < 0)
         hurts = sorted(s for s, e in signs.items() if e > 0)
-        verdict = "mixed" if helps and hurts else "keep" if helps else "drop" if hurts else "no effect"
         out.append({"seq": "", "variant": f"{term} off", "term": term, "helps": ",".join(helps),
-                    "hurts": ",".join(hurts), "verdict": verdict})
+                    "hurts": ",".join(hurts), "verdict": verdict(helps, hurts)})
     return pd.DataFrame(out)
 
 
