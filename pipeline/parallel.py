@@ -10,6 +10,8 @@ submits to one cluster opened on first use, so several rows' windows share its w
 On a local cluster of its own, map_tasks can let the last tasks take the cores that finished tasks free
 (`idle_threads`): each running task raises its torch threads to its share of the idle task slots the next
 time it reports progress, so the last window of a row does not fit on one core while the others sit idle.
+In-process work that numpy or a C library runs with the GIL released (synthetic frames, fused frames) goes
+through `in_order`: a few threads, results in input order.
 """
 from __future__ import annotations
 
@@ -19,8 +21,11 @@ import os
 import threading
 import time
 import uuid
-from collections.abc import Callable, Iterator
+from collections import deque
+from collections.abc import Callable, Iterable, Iterator
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
+from itertools import islice
 from typing import Any
 
 from pipeline import progress
@@ -55,6 +60,26 @@ class _IdleShare:
 _IDLE: _IdleShare | None = None
 IDLE_CHECK_S = 2.0
 """Seconds between two looks of a running task at the idle slots (each look is a round trip to the scheduler)."""
+
+
+def in_order(fn: Callable[[Any], Any], items: Iterable, threads: int) -> Iterator[Any]:
+    """fn(item) for every item, in the items' order, computed by `threads` threads (1: in this thread) at most
+    2 x threads items ahead of the consumer, so only a few items' results are held at once."""
+    if threads <= 1:
+        yield from map(fn, items)
+        return
+    it = iter(items)
+    with ThreadPoolExecutor(threads) as pool:
+        ahead = deque(pool.submit(fn, x) for x in islice(it, 2 * threads))
+        while ahead:
+            done = ahead.popleft().result()
+            ahead.extend(pool.submit(fn, x) for x in islice(it, 1))
+            yield done
+
+
+def available_cores() -> int:
+    """The cores this process may run on (its CPU affinity where the platform has one)."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
 
 
 def report(key: str, done: int, total: int, **info: Any) -> None:

@@ -14,7 +14,8 @@ from pipeline.classes import THING_IDS, VOID
 from pipeline.images import ImageError, write_png
 from pipeline.stage import StageContext
 from rowmap.detections import dropped_segments, fruit_segments
-from rowmap.fusion import Config, Frame, default_threads, fit_models, fuse, in_order, render_label, slot_views
+from pipeline.parallel import available_cores, in_order
+from rowmap.fusion import Config, Frame, fit_models, fuse, render_label, slot_views
 from rowmap.fusion.association import code, row_fruits, slot_table
 from rowmap.geometry import POSE_COLS, window_alignments, with_sensor_depth
 from rowmap.renders import PANOPTIC_KINDS, Renders, encode
@@ -63,7 +64,8 @@ def read_slots(views: pd.DataFrame, frames: pd.DataFrame, renders: Renders, shar
                ctx: StageContext) -> tuple[dict, dict, dict]:
     """Every rendered frame's slot views ((window, slot) -> {(frame, group): SlotView}) and slot-code map
     ((window, frame) -> [H, W], 0 = no slot), and those maps of the frames several windows rendered (the
-    association's masks). The renders are read and cut into slots on every core (in_order), in views' order."""
+    association's masks). The renders are read and cut into slots on every core (pipeline.parallel.in_order),
+    in views' order."""
     def read(r) -> tuple[int, int, dict, np.ndarray]:
         wid, fid = int(r.window_id), int(r.frame_id)
         fr = frames.loc[fid]
@@ -74,7 +76,7 @@ def read_slots(views: pd.DataFrame, frames: pd.DataFrame, renders: Renders, shar
 
     per_slot: dict[tuple[int, int], dict] = defaultdict(dict)
     codes = {}
-    read_all = in_order(read, views.itertuples(index=False), default_threads())
+    read_all = in_order(read, views.itertuples(index=False), available_cores())
     for wid, fid, found, code_map in ctx.progress(read_all, "read renders", total=len(views)):
         codes[(wid, fid)] = code_map
         for (slot, g), sv in found.items():

@@ -2,17 +2,15 @@
 from __future__ import annotations
 
 import os
-from collections import deque
-from collections.abc import Callable, Iterable, Iterator
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Literal, TypeVar
+from typing import Literal
 
 import numpy as np
 import pandas as pd
 import yaml
 
+from pipeline import parallel
 from pipeline.images import write_png
 from pipeline.stage import StageContext
 from sources.common import depth_to_mm
@@ -236,25 +234,6 @@ def row_layout(cfg: Config, cam_x: np.ndarray, cam_y: float, cam_z: float, k: np
         plant_height_m=max(2.4, cam_z + far_half_h + 0.3))
 
 
-T = TypeVar("T")
-R = TypeVar("R")
-
-
-def ordered_map(fn: Callable[[T], R], items: Iterable[T], workers: int) -> Iterator[R]:
-    """fn over items on `workers` threads, results in input order, at most 2 * workers in flight."""
-    if workers <= 1:
-        yield from map(fn, items)
-        return
-    with ThreadPoolExecutor(workers) as pool:
-        pending: deque = deque()
-        for item in items:
-            pending.append(pool.submit(fn, item))
-            if len(pending) >= 2 * workers:
-                yield pending.popleft().result()
-        while pending:
-            yield pending.popleft().result()
-
-
 def odometry_twist(stamps_ns: np.ndarray, poses: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Body-frame linear [K, 3] and angular [K, 3] velocities of a pose sequence (finite differences)."""
     t = (stamps_ns - stamps_ns[0]) / 1e9
@@ -378,8 +357,8 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
     annotated: list[tuple[int, np.ndarray, np.ndarray]] = []
     views = np.zeros(n_ids, np.int32)
     try:
-        for i, fr in enumerate(ctx.progress(ordered_map(render_frame, range(cfg.n_frames), workers), "render and write",
-                                            cfg.n_frames)):
+        rendered = parallel.in_order(render_frame, range(cfg.n_frames), workers)
+        for i, fr in enumerate(ctx.progress(rendered, "render and write", cfg.n_frames)):
             stamp = int(stamps[i])
             depth_mm = depth_to_mm(fr["depth"])
             det = fr["detections"]

@@ -8,8 +8,8 @@ from rowmap.fusion.assignment import cost, terms
 from rowmap.fusion.association import slot_views
 from rowmap.fusion.evidence import Frame, frame_evidence, render_label
 from rowmap.fusion.models import FruitModel, FruitModels, fit_models
-from rowmap.fusion.rounds import default_threads, fuse, fused_label, in_order
+from rowmap.fusion.rounds import fuse, fused_label
 from rowmap.fusion.settings import TERMS, Config
 
-__all__ = ["TERMS", "Config", "Frame", "FruitModel", "FruitModels", "cost", "default_threads", "fit_models",
-           "frame_evidence", "fuse", "fused_label", "in_order", "render_label", "slot_views", "terms"]
+__all__ = ["TERMS", "Config", "Frame", "FruitModel", "FruitModels", "cost", "fit_models",
+           "frame_evidence", "fuse", "fused_label", "render_label", "slot_views", "terms"]

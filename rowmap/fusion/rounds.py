@@ -3,16 +3,13 @@ independent within a round (the models change only between rounds), so several t
 come back in frame order, so the output does not depend on the thread count."""
 from __future__ import annotations
 
-import os
-from collections import defaultdict, deque
+from collections import defaultdict
 from collections.abc import Callable, Iterable, Iterator
-from concurrent.futures import ThreadPoolExecutor
-from itertools import islice
-from typing import Any
 
 import numpy as np
 
 from nerf.surfaces import robust_centre
+from pipeline.parallel import available_cores, in_order
 from rowmap.fusion.assignment import assign
 from rowmap.fusion.association import MAX_POINTS, MIN_GROUP_PX
 from rowmap.fusion.evidence import Frame, frame_evidence
@@ -30,26 +27,6 @@ def fused_label(frame: Frame, models: FruitModels, owners: dict, cfg: Config) ->
     was = out.ravel()[ev.pixels]
     out.ravel()[ev.pixels] = np.where((ids == 0) & (was < 0), -1, ids)
     return out, ev, ids
-
-
-def in_order(fn: Callable[[Any], Any], items: Iterable, threads: int) -> Iterator[Any]:
-    """fn(item) for every item, in the items' order, computed by `threads` threads (1: in this thread) at most
-    2 x threads items ahead of the consumer, so only a few frames' arrays are held at once."""
-    if threads <= 1:
-        yield from map(fn, items)
-        return
-    it = iter(items)
-    with ThreadPoolExecutor(threads, thread_name_prefix="fusion") as pool:
-        ahead = deque(pool.submit(fn, x) for x in islice(it, 2 * threads))
-        while ahead:
-            done = ahead.popleft().result()
-            ahead.extend(pool.submit(fn, x) for x in islice(it, 1))
-            yield done
-
-
-def default_threads() -> int:
-    """The cores this process may run on (the fusion's thread count)."""
-    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
 
 
 def round_views(frame: Frame, models: FruitModels, owners: dict, cfg: Config) -> tuple[list, list]:
@@ -83,7 +60,7 @@ def fuse(frame_ids: Iterable[int], load: Callable[[int], Frame], models: FruitMo
     before it collects, per fruit, the points of the pixels it was given and its detector segments
     (round_views), and refits the models with them (rowmap.fusion.models.update). `threads`: frames worked on
     at once (0 = every core of this process); `load` must be safe to call from several threads."""
-    frame_ids, owners, threads = list(frame_ids), {}, threads or default_threads()
+    frame_ids, owners, threads = list(frame_ids), {}, threads or available_cores()
     for r in range(cfg.refine_rounds):
         grown: dict[int, list[np.ndarray]] = defaultdict(list)
         seg_views: dict[int, list[tuple]] = defaultdict(list)
