@@ -70,17 +70,28 @@ def scored_window(w: pd.DataFrame, dets: pd.DataFrame, gt_segments: pd.DataFrame
 
 
 def fit_and_score(data: WindowData, labels: WindowLabels, gts: list, ncfg: NerfConfig, pcfg: PanopticConfig,
-                  depth_poses: DepthPoses = "off") -> dict:
-    """The window fitted as nerf_fit fits it (nerf/fit.py: depth poses, colour and panoptic phase, one full-size
-    render per validation frame, instance completion), then scored."""
-    fit = fit_panoptic_window(data, labels, ncfg, pcfg, depth_poses=depth_poses)
+                  depth_poses: DepthPoses = "off", render_scale: float = 1.0, icp_max_depth_m: float = 0.0) -> dict:
+    """The window fitted as nerf_fit fits it (nerf/fit.py: depth poses, colour and panoptic phase, one render per
+    validation frame at `render_scale` (1 = full size, 0 = nerf_fit's automatic working scale), instance
+    completion), then scored; ground truth is taken to the renders' size by nearest pixel."""
+    fit = fit_panoptic_window(data, labels, ncfg, pcfg, depth_poses=depth_poses, render_scale=render_scale,
+                              icp_max_depth_m=icp_max_depth_m)
     res, pres = fit.colour, fit.panoptic
     preds = [(res.renders[int(i)]["semantic"], res.renders[int(i)]["instance"]) for i in np.flatnonzero(~data.is_train)]
+    gts = [gt if gt[0].shape == p[0].shape else tuple(resize_nearest(a, p[0].shape) for a in gt)
+           for gt, p in zip(gts, preds)]
     return {"psnr": float(np.mean(list(res.val_psnr.values()))), **score(preds, gts),
             "fit_min_per_window": (res.fit_s + pres.fit_s) / 60, "render_s_per_image": res.render_s_per_image,
             "params": res.params + pres.params, "colour_steps": ncfg.steps, "panoptic_steps": pcfg.steps,
-            "rays_per_step": ncfg.rays_per_step,
+            "rays_per_step": ncfg.rays_for(data.images.shape[1] * data.images.shape[2]),
             "samples_per_ray": float(np.mean([h["samples_per_ray"] for h in res.history]))}
+
+
+def resize_nearest(a: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """Label image `a` [H, W] at (h, w) = `shape`, each pixel taking the label at its centre (any dtype)."""
+    rows = ((np.arange(shape[0]) + 0.5) * a.shape[0] / shape[0]).astype(int)
+    cols = ((np.arange(shape[1]) + 0.5) * a.shape[1] / shape[1]).astype(int)
+    return a[rows[:, None], cols[None, :]]
 
 
 def methods(colour_steps: int, with_l: bool) -> list[tuple[str, str, dict, dict]]:

@@ -14,7 +14,13 @@ miou, id_consistency, count_pred / count_gt / count_error_rel (the window's frui
 bench.ablation.window_count), front_psnr / front_pq (on the front of fit time vs that metric), val_frames,
 settings; and `pareto.png`.
 
-    pag bench pareto [--seq synth_row] [--window 1] [--quick | --long] [--val-frames N]
+`--stage` fits every point as the nerf_fit stage does (its model settings and step counts, depth-ICP initial
+poses, renders at its working scale, scored there against the ground truth taken to that size) with every
+validation frame, and its points (STAGE_POINTS) are cheaper variants of those settings: fewer steps, a longer
+marching step, earlier termination. It writes `pareto_stage.parquet` and `pareto_stage.png`: at 1280x720
+(`--seq synth_bup20 --window 0`) this is the scale bench the step budget is chosen on.
+
+    pag bench pareto [--seq synth_row] [--window 1] [--quick | --long | --stage] [--val-frames N]
 """
 from __future__ import annotations
 
@@ -49,9 +55,18 @@ LONG_POINTS = POINTS + [
     ("16 levels, 2^18, 2048 rays", "cpu", dict(n_levels=16, log2_capacity=18, rays_per_step=2048)),
     ("L preset", "L", {}),
 ]
+STAGE_POINTS = [
+    ("nerf_fit settings", "", {}),
+    ("2/3 of the steps", "", dict(steps_factor=2 / 3)),
+    ("1/2 of the steps", "", dict(steps_factor=0.5)),
+    ("1.5x marching step", "", dict(step_factor=1.5)),
+    ("early stop at T < 1e-2", "", dict(train_early_stop=0.01)),
+]
+"""--stage: nerf_fit's own settings (model, steps, ICP poses, working-scale renders) and cheaper variants."""
 MODES = {"quick": dict(colour_steps=100, panoptic_steps=80, val_frames=3),
          "default": dict(colour_steps=200, panoptic_steps=150, val_frames=3),
-         "long": dict(colour_steps=600, panoptic_steps=400, val_frames=6)}
+         "long": dict(colour_steps=600, panoptic_steps=400, val_frames=6),
+         "stage": dict(colour_steps=0, panoptic_steps=0, val_frames=0)}
 
 
 def downscale(data: WindowData, labels: WindowLabels, gts: list, scale: float
@@ -84,25 +99,39 @@ def pareto_front(cost: np.ndarray, quality: np.ndarray) -> np.ndarray:
 
 def run(seq: str = "synth_row", window: int = 1, mode: str = "default", val_frames: int = -1, threads: int = 2,
         data_root: Path = Path("data"), out_dir: Path = Path("data/bench")) -> pd.DataFrame:
+    """Fit and score every point of `mode` on the window. Mode 'stage' fits as the nerf_fit stage does (its
+    model settings and steps, ICP-corrected poses, renders at its working scale) and scores at that scale."""
     torch.set_num_threads(threads)
     m = dict(MODES[mode])
     if val_frames >= 0:
         m["val_frames"] = val_frames
+    fit_kw, points = {}, LONG_POINTS if mode == "long" else POINTS
+    if mode == "stage":
+        from pipeline import dag
+
+        stage = dag.load_stage("nerf_fit").module     # through the DAG, as stage_defaults does: no stage import
+        scfg = stage.Config()
+        base_n, pcfg, points = stage.model_config(scfg), scfg.panoptic, STAGE_POINTS
+        m.update(colour_steps=base_n.steps, panoptic_steps=pcfg.steps)
+        fit_kw = dict(depth_poses=scfg.depth_poses, render_scale=scfg.render_scale,
+                      icp_max_depth_m=scfg.icp_max_depth_m)
+    else:
+        pcfg = PanopticConfig(steps=m["panoptic_steps"])
     settings = f"{mode}: base colour_steps={m['colour_steps']} panoptic_steps={m['panoptic_steps']} val_frames={m['val_frames']}"
     print(f"pag bench pareto, {settings}", flush=True)
     w, dets = window_rows(data_root, seq, window)
     gt_segments = read(data_root, seq, "gt_segments")
     data, labels, _, gts = scored_window(w, dets, gt_segments, data_root, m["val_frames"])
-    pcfg = PanopticConfig(steps=m["panoptic_steps"])
     rows = []
-    for name, pre, change in (LONG_POINTS if mode == "long" else POINTS):
+    for name, pre, change in points:
         change = dict(change)
         steps = max(1, int(round(m["colour_steps"] * change.pop("steps_factor", 1.0))))
         scale = change.pop("image_scale", 1.0)
         step_factor = change.pop("step_factor", 1.0)
-        ncfg = preset(pre, steps=steps, seed=window, **change)
+        ncfg = replace(base_n, steps=steps, seed=window, **change) if mode == "stage" else \
+            preset(pre, steps=steps, seed=window, **change)
         ncfg = replace(ncfg, cone_angle=ncfg.cone_angle * step_factor)
-        r = fit_and_score(*downscale(data, labels, gts, scale), ncfg, pcfg)
+        r = fit_and_score(*downscale(data, labels, gts, scale), ncfg, pcfg, **fit_kw)
         rows.append({"point": name, "preset": pre if not change and name.endswith("preset") else "",
                      "n_levels": ncfg.n_levels, "log2_capacity": ncfg.log2_capacity, "image_scale": scale,
                      "cone_angle": ncfg.cone_angle, **r,
@@ -113,8 +142,9 @@ def run(seq: str = "synth_row", window: int = 1, mode: str = "default", val_fram
     df["front_psnr"] = pareto_front(df.fit_min_per_window.to_numpy(), df.psnr.to_numpy())
     df["front_pq"] = pareto_front(df.fit_min_per_window.to_numpy(), df.pq.to_numpy())
     out_dir.mkdir(parents=True, exist_ok=True)
-    write_parquet(df, out_dir / "pareto.parquet")
-    plot(df, out_dir / "pareto.png")
+    name = "pareto_stage" if mode == "stage" else "pareto"
+    write_parquet(df, out_dir / f"{name}.parquet")
+    plot(df, out_dir / f"{name}.png")
     return df
 
 
@@ -150,12 +180,14 @@ def main(argv: list[str] | None = None) -> int:
     g = p.add_mutually_exclusive_group()
     g.add_argument("--quick", action="store_true", help=f"fewer steps: {MODES['quick']}")
     g.add_argument("--long", action="store_true", help=f"more steps and points (incl. L): {MODES['long']}")
+    g.add_argument("--stage", action="store_true", help="nerf_fit's own settings and steps, ICP poses and "
+                   "working-scale renders, every validation frame; points: cheaper variants of them")
     p.add_argument("--val-frames", type=int, default=-1, help="validation frames scored (-1 = the mode's, 0 = all)")
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--data-root", type=Path, default=Path("data"))
     p.add_argument("--out", type=Path, default=Path("data/bench"))
     a = p.parse_args(argv)
-    mode = "quick" if a.quick else "long" if a.long else "default"
+    mode = "quick" if a.quick else "long" if a.long else "stage" if a.stage else "default"
     df = run(a.seq, a.window, mode, a.val_frames, a.threads, a.data_root, a.out)
     cols = ["point", "n_levels", "log2_capacity", "colour_steps", "rays_per_step", "image_scale", "cone_angle",
             "samples_per_ray", "params", "fit_min_per_window",

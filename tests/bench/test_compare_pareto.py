@@ -81,3 +81,21 @@ def test_window_count_counts_distinct_ids_so_flicker_overcounts_and_merges_under
     assert window_count(tiny, gts, 12)["count_pred"] == 1.0
     stuff = [(np.zeros((10, 40), np.uint8), inst) for _, inst in same]       # ids on stuff pixels are no fruit
     assert window_count(stuff, gts, 12)["count_pred"] == 0.0
+
+
+def test_resize_nearest_takes_each_pixel_label_at_its_centre_for_any_dtype():
+    from bench.compare import resize_nearest
+
+    a = np.arange(8 * 12, dtype=np.int64).reshape(8, 12)       # cv2 cannot resize int64
+    small = resize_nearest(a, (2, 3))
+    assert small.dtype == np.int64
+    np.testing.assert_array_equal(small, a[[2, 6]][:, [2, 6, 10]])
+    np.testing.assert_array_equal(resize_nearest(a, a.shape), a)
+
+
+def test_stage_points_vary_only_the_cost_of_nerf_fit_settings():
+    from bench.pareto import MODES, STAGE_POINTS
+
+    assert STAGE_POINTS[0][2] == {} and MODES["stage"]["val_frames"] == 0    # the reference: the stage unchanged
+    for _, preset_name, change in STAGE_POINTS[1:]:
+        assert preset_name == "" and set(change) <= {"steps_factor", "step_factor", "train_early_stop"}
