@@ -10,6 +10,7 @@ from itertools import combinations
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
+from nerf.config import BASE_PIXELS
 from nerf.surfaces import fruit_sphere, robust_centre, unproject
 from rowmap.fusion.settings import Config
 from rowmap.geometry import pixel_groups, runs_by_key, sphere_behind, subsample
@@ -17,7 +18,8 @@ from rowmap.geometry import pixel_groups, runs_by_key, sphere_behind, subsample
 MAX_GROUPS = 256
 """pixel groups one slot can split into in one frame (further groups stay with the largest)."""
 MIN_GROUP_PX = 50
-"""pixels: a smaller group stays with its slot's largest group in that frame."""
+"""pixels of a 320x180 image (nerf.config.BASE_PIXELS; larger images scale it by their area, min_group_px): a
+smaller group stays with its slot's largest group in that frame."""
 MIN_SLOT_PX = 4
 """pixels over all frames: a smaller slot is dropped (its pixels become void)."""
 MAX_POINTS = 400
@@ -26,6 +28,13 @@ MIN_SPLIT_FRAMES = 2
 """frames: a cluster of a slot's (or a fruit's detector) centres seen in fewer is no fruit of its own."""
 STRONG_OVERLAP = 0.8
 """share of the smaller mask inside the other that lets two slots match up to twice max_match_distance_m."""
+
+
+def min_group_px(shape: tuple[int, ...]) -> int:
+    """MIN_GROUP_PX for images of `shape` (H, W, ...): grown with the image area above 320x180, so a group is
+    the same share of the image at every size (renders at a working scale are stored at full size: at
+    1280x720 each working pixel is 16 stored pixels). Example: (720, 1280) -> 800."""
+    return int(round(MIN_GROUP_PX * max(1.0, shape[0] * shape[1] / BASE_PIXELS)))
 
 
 def code(slot, group):
@@ -74,7 +83,7 @@ def slot_views(sem: np.ndarray, inst: np.ndarray, depth: np.ndarray, sensor: np.
         good = depth[vv, uu] > 0
         pts = unproject(depth, k, c2w, vv[good], uu[good])
         labels = np.zeros(len(vv), np.int64)
-        labels[good] = pixel_groups(vv[good], uu[good], pts, cfg.group_gap_m, MIN_GROUP_PX, MAX_GROUPS)
+        labels[good] = pixel_groups(vv[good], uu[good], pts, cfg.group_gap_m, min_group_px(inst.shape), MAX_GROUPS)
         group[vv, uu] = labels
         for g in range(int(labels.max()) + 1):
             mine = labels == g

@@ -11,7 +11,7 @@ import numpy as np
 from nerf.surfaces import robust_centre
 from pipeline.parallel import available_cores, in_order
 from rowmap.fusion.assignment import assign
-from rowmap.fusion.association import MAX_POINTS, MIN_GROUP_PX
+from rowmap.fusion.association import MAX_POINTS, min_group_px
 from rowmap.fusion.evidence import Frame, frame_evidence
 from rowmap.fusion.models import FruitModels, update
 from rowmap.fusion.settings import Config
@@ -32,7 +32,7 @@ def fused_label(frame: Frame, models: FruitModels, owners: dict, cfg: Config) ->
 def round_views(frame: Frame, models: FruitModels, owners: dict, cfg: Config) -> tuple[list, list]:
     """What one frame of a round gives the refit: [(fruit, its pixels' points)] and [(fruit, (frame, segment,
     pixels, centre [3], points))] of the detector segments lying mostly on fruits, each given to the fruit
-    holding most of it (at least MIN_GROUP_PX of its pixels)."""
+    holding most of it (at least min_group_px of its pixels)."""
     _, ev, ids = fused_label(frame, models, owners, cfg)
     grown, segs, taken = [], [], set()
     for f in np.unique(ids[ids > 0]):
@@ -44,9 +44,10 @@ def round_views(frame: Frame, models: FruitModels, owners: dict, cfg: Config) ->
     size = np.bincount(ev.segment, minlength=1)
     covered = np.bincount(ev.segment[on], minlength=len(size))
     keys, inverse, n = np.unique(ids[on] * len(size) + ev.segment[on], return_inverse=True, return_counts=True)
+    min_px = min_group_px(frame.label.shape)
     for j in np.argsort(-n, kind="stable"):
         f, s = divmod(int(keys[j]), len(size))
-        if n[j] >= MIN_GROUP_PX and 2 * covered[s] > size[s] and s not in taken:
+        if n[j] >= min_px and 2 * covered[s] > size[s] and s not in taken:
             taken.add(s)
             pts = ev.points[on][inverse == j]
             segs.append((f, (frame.frame_id, s, int(n[j]), robust_centre(pts)[0], pts[:: max(1, len(pts) // 400)])))

@@ -172,3 +172,24 @@ def test_frames_fused_on_several_threads_match_one_thread_frame_for_frame():
         np.testing.assert_array_equal(a, b)
     for fid, a, _ in one:                       # and the fusion did its work: fewer wrong pixels than the render
         assert (a != who + 1).sum() < (rng_labels[fid] & (who >= 0)).sum()
+
+
+@pytest.mark.parametrize("piece_px, groups", [(4, 1), (8, 2)])
+def test_a_slot_splits_into_the_same_pixel_groups_at_320x180_and_at_1280x720(piece_px, groups):
+    """A slot painted on a fruit and on a piece far behind it: the piece is a group of its own only when it is
+    large enough as a share of the image, the same at 320x180 and in a 1280x720 render stored 4x larger."""
+    from rowmap.fusion.association import slot_views
+
+    sem, inst = np.zeros((180, 320), np.int64), np.zeros((180, 320), np.int64)
+    depth = np.full((180, 320), 2.0)
+    sem[80:100, 100:120], inst[80:100, 100:120], depth[80:100, 100:120] = 2, 1, 0.6    # the fruit
+    sl = np.s_[20:20 + piece_px, 250:250 + piece_px]
+    sem[sl], inst[sl], depth[sl] = 2, 1, 1.4                                             # the piece behind
+    k = np.array([230.0, 230.0, 160.0, 90.0])
+    counts = []
+    for scale in (1, 4):
+        up = lambda a: np.repeat(np.repeat(a, scale, 0), scale, 1)  # noqa: E731  nearest, as stored renders are
+        views, _ = slot_views(up(sem), up(inst), up(depth), np.zeros((180 * scale, 320 * scale)), k * scale,
+                              np.eye(4), [2, 3, 4], Config())
+        counts.append(len(views))
+    assert counts == [groups, groups]
