@@ -87,8 +87,9 @@ def read_slots(views: pd.DataFrame, frames: pd.DataFrame, renders: Renders, shar
 class FrameReader:
     """Reads one frame's inputs for the fusion: every window's render of it with its slots mapped to row
     fruits (`lut`), composed into one render label (render_label), the placing depth and the detector
-    segments. Keeps {frame: (composed semantic, depth, whether any pixel came from another window than the
-    nearest)} in `kept` until the frame is written."""
+    segments. Called, it also keeps {frame: (composed semantic, depth, whether any pixel came from another
+    window than the nearest)} in `kept` until the frame is written; `frame(fid)` keeps nothing (the fusion's
+    earlier rounds, which write nothing: kept for every frame, they held gigabytes at 1280x720)."""
 
     def __init__(self, frames: pd.DataFrame, renders: Renders, by_frame: dict[int, pd.DataFrame], codes: dict,
                  lut: dict, support: dict, dropped: dict, ctx: StageContext):
@@ -108,12 +109,16 @@ class FrameReader:
         return sem, label, depth
 
     def __call__(self, fid: int) -> Frame:
+        return self.frame(fid, keep=True)
+
+    def frame(self, fid: int, keep: bool = False) -> Frame:
         fr, rows = self.frames.loc[fid], self.by_frame[fid]
         wins = rows.window_id.astype(int).tolist()
         sems, labels, depths = zip(*(self.window_label(w, fid, (int(fr.height), int(fr.width))) for w in wins))
         label, src = render_label(list(labels), [self.support[w] for w in wins])
         sem, depth = (np.take_along_axis(np.stack(images), src[None], 0)[0] for images in (sems, depths))
-        self.kept[fid] = (sem, depth, bool((src > 0).any()))
+        if keep:
+            self.kept[fid] = (sem, depth, bool((src > 0).any()))
         return Frame(fid, label, with_sensor_depth(depth, self.ctx.abspath(fr.depth_path), fr.depth_scale_m),
                      fruit_segments(fr, self.ctx.data_root, self.dropped.get(fid)), intrinsics(fr), rows.c2w.iloc[0])
 
@@ -185,7 +190,7 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
     reader = FrameReader(frames, renders, by_frame, codes, *slot_table(local),
                          dropped_segments(inputs.get("detections_filtered")), ctx)
     rows, models = [], fit_models(groups, local, per_slot, cfg)
-    for fid, fused, models in fuse(sorted(by_frame), reader, models, cfg, ctx.progress):
+    for fid, fused, models in fuse(sorted(by_frame), reader.frame, models, cfg, ctx.progress, load_last=reader):
         rows.append(write_frame(fid, fused, models, reader, int(n_win[fid]), out_dir, ctx))
     ctx.count("slots", len(local))
     ctx.count("slots_dropped", sum(lf.fruit_id == 0 for lf in local))

@@ -55,12 +55,14 @@ def round_views(frame: Frame, models: FruitModels, owners: dict, cfg: Config) ->
 
 
 def fuse(frame_ids: Iterable[int], load: Callable[[int], Frame], models: FruitModels, cfg: Config,
-         progress: Callable = lambda it, label, total: it, threads: int = 0
-         ) -> Iterator[tuple[int, np.ndarray, FruitModels]]:
+         progress: Callable = lambda it, label, total: it, threads: int = 0,
+         load_last: Callable[[int], Frame] | None = None) -> Iterator[tuple[int, np.ndarray, FruitModels]]:
     """(frame id, fused label [H, W], the final models) per frame of the last round, in frame order. Each round
     before it collects, per fruit, the points of the pixels it was given and its detector segments
     (round_views), and refits the models with them (rowmap.fusion.models.update). `threads`: frames worked on
-    at once (0 = every core of this process); `load` must be safe to call from several threads."""
+    at once (0 = every core of this process); `load` must be safe to call from several threads. `load_last`
+    (default `load`) loads the frames of the last round: a caller that keeps what it writes with each frame
+    keeps it only there, a few frames ahead of the writes, not for every frame of the earlier rounds."""
     frame_ids, owners, threads = list(frame_ids), {}, threads or available_cores()
     for r in range(cfg.refine_rounds):
         grown: dict[int, list[np.ndarray]] = defaultdict(list)
@@ -72,6 +74,7 @@ def fuse(frame_ids: Iterable[int], load: Callable[[int], Frame], models: FruitMo
             for f, view in segs:
                 seg_views[f].append(view)
         models, owners = update(models, grown, seg_views, cfg)
-    fused = in_order(lambda fid: (fid, fused_label(load(fid), models, owners, cfg)[0]), frame_ids, threads)
+    last = load_last or load
+    fused = in_order(lambda fid: (fid, fused_label(last(fid), models, owners, cfg)[0]), frame_ids, threads)
     for fid, out in progress(fused, "write fused frames", len(frame_ids)):
         yield fid, out, models

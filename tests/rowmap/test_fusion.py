@@ -193,3 +193,29 @@ def test_a_slot_splits_into_the_same_pixel_groups_at_320x180_and_at_1280x720(pie
                               np.eye(4), [2, 3, 4], Config())
         counts.append(len(views))
     assert counts == [groups, groups]
+
+
+def test_fuse_loads_each_frame_once_per_round_and_the_last_round_through_load_last():
+    """What a caller keeps per written frame (load_last) is loaded only in the last round, so the earlier
+    rounds do not hold it for every frame of the row."""
+    from collections import Counter
+
+    from rowmap.fusion.rounds import fuse
+
+    cfg = Config()
+    centres = [np.array([0.0, 0.0, 0.5])]
+    depth, who = scene(centres)
+    models = FruitModels({1: model(centres[0], cfg)})
+    calls = Counter()
+
+    def loader(kind):
+        def load(fid):
+            calls[kind, fid] += 1
+            return Frame(frame_id=fid, label=np.where(who >= 0, who + 1, 0), depth=depth, segments=None, k=K,
+                         c2w=np.eye(4))
+        return load
+
+    out = list(fuse([3, 5], loader("round"), models, cfg, threads=2, load_last=loader("last")))
+    assert [fid for fid, _, _ in out] == [3, 5]
+    assert calls == {("round", 3): cfg.refine_rounds, ("round", 5): cfg.refine_rounds, ("last", 3): 1, ("last", 5): 1}
+    assert (out[0][1][who >= 0] == 1).all()
