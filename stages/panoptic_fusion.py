@@ -166,8 +166,12 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
     if cfg.align_windows and not views.empty:
         wp = inputs["window_poses"]
         align = window_alignments(wp[wp.window_id.isin(views.window_id.unique())])
-        views["c2w"] = [align[int(w)] @ c for w, c in zip(views.window_id, views.c2w)]
-        ctx.summary["window_alignment_max_m"] = round(max(float(np.linalg.norm(t[:3, 3])) for t in align.values()), 4)
+        moved = [align[int(w)] @ c for w, c in zip(views.window_id, views.c2w)]
+        # how far the alignment moved a camera (not the transform's translation, which a small rotation about
+        # a far origin makes large)
+        ctx.summary["window_alignment_max_m"] = round(max(float(np.linalg.norm(m[:3, 3] - c[:3, 3]))
+                                                          for m, c in zip(moved, views.c2w)), 4)
+        views["c2w"] = moved
     out_dir = ctx.output_dir("panoptic")
     for sub in ("semantic", "instance"):
         (out_dir / sub).mkdir(parents=True, exist_ok=True)
