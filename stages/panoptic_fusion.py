@@ -87,9 +87,10 @@ def read_slots(views: pd.DataFrame, frames: pd.DataFrame, renders: Renders, shar
 class FrameReader:
     """Reads one frame's inputs for the fusion: every window's render of it with its slots mapped to row
     fruits (`lut`), composed into one render label (render_label), the placing depth and the detector
-    segments. Called, it also keeps {frame: (composed semantic, depth, whether any pixel came from another
-    window than the nearest)} in `kept` until the frame is written; `frame(fid)` keeps nothing (the fusion's
-    earlier rounds, which write nothing: kept for every frame, they held gigabytes at 1280x720)."""
+    segments. With keep (the fusion's last round, whose frames are written) it also keeps {frame: (composed
+    semantic, depth, whether any pixel came from another window than the nearest)} in `kept` until the frame
+    is written; the earlier rounds write nothing and keep nothing (kept for every frame, those held gigabytes
+    at 1280x720)."""
 
     def __init__(self, frames: pd.DataFrame, renders: Renders, by_frame: dict[int, pd.DataFrame], codes: dict,
                  lut: dict, support: dict, dropped: dict, ctx: StageContext):
@@ -107,9 +108,6 @@ class FrameReader:
         label = np.zeros(shape, np.int64)
         label[thing] = np.where(mapped == 0, -1, mapped)[np.searchsorted(keys, codes[thing])]
         return sem, label, depth
-
-    def __call__(self, fid: int) -> Frame:
-        return self.frame(fid, keep=True)
 
     def frame(self, fid: int, keep: bool = False) -> Frame:
         fr, rows = self.frames.loc[fid], self.by_frame[fid]
@@ -194,7 +192,8 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
     reader = FrameReader(frames, renders, by_frame, codes, *slot_table(local),
                          dropped_segments(inputs.get("detections_filtered")), ctx)
     rows, models = [], fit_models(groups, local, per_slot, cfg)
-    for fid, fused, models in fuse(sorted(by_frame), reader.frame, models, cfg, ctx.progress, load_last=reader):
+    for fid, fused, models in fuse(sorted(by_frame), reader.frame, models, cfg, ctx.progress,
+                                   load_last=lambda fid: reader.frame(fid, keep=True)):
         rows.append(write_frame(fid, fused, models, reader, int(n_win[fid]), out_dir, ctx))
     ctx.count("slots", len(local))
     ctx.count("slots_dropped", sum(lf.fruit_id == 0 for lf in local))

@@ -78,12 +78,13 @@ def slot_views(sem: np.ndarray, inst: np.ndarray, depth: np.ndarray, sensor: np.
     out = {}
     v, u = np.nonzero(thing)
     v, u, ids, starts, ends = runs_by_key(v, u, inst[v, u])
+    min_px = min_group_px(inst.shape)
     for s0, s1 in zip(starts, ends):
         vv, uu = v[s0:s1], u[s0:s1]
         good = depth[vv, uu] > 0
         pts = unproject(depth, k, c2w, vv[good], uu[good])
         labels = np.zeros(len(vv), np.int64)
-        labels[good] = pixel_groups(vv[good], uu[good], pts, cfg.group_gap_m, min_group_px(inst.shape), MAX_GROUPS)
+        labels[good] = pixel_groups(vv[good], uu[good], pts, cfg.group_gap_m, min_px, MAX_GROUPS)
         group[vv, uu] = labels
         for g in range(int(labels.max()) + 1):
             mine = labels == g
