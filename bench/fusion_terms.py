@@ -108,7 +108,7 @@ def figure(data_root: Path, seq: str, path: Path = Path("docs/fusion_frame.png")
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    import rowmap.fusion.rounds as rounds
+    import rowmap.fusion.assignment as assignment
     from rowmap.fusion import cost
 
     seen: dict[int, tuple] = {}
@@ -119,8 +119,8 @@ def figure(data_root: Path, seq: str, path: Path = Path("docs/fusion_frame.png")
         seen[frame.frame_id] = (frame, ev, out, c[:, 1] - c[:, 0] if c.shape[1] > 1 else c[:, 0])
         return out, ev, ids
 
-    fused_label = rounds.fused_label
-    with mock.patch.object(rounds, "fused_label", keep):
+    fused_label = assignment.fused_label
+    with mock.patch.object(assignment, "fused_label", keep):
         run_stages(seq, data_root, ["panoptic_fusion"], config={"panoptic_fusion": row_config(
             data_root, seq, STAGES)["panoptic_fusion"]})
     fid = max(seen, key=lambda f: len(np.unique(seen[f][2][seen[f][2] > 0])))

@@ -12,11 +12,11 @@ import schemas
 from nerf.geometry import pose_matrix, pose_txyzq
 from pipeline.classes import THING_IDS, VOID
 from pipeline.images import ImageError, write_png
+from pipeline.parallel import available_cores, in_order
 from pipeline.stage import StageContext
 from rowmap.detections import dropped_segments, fruit_segments
-from pipeline.parallel import available_cores, in_order
 from rowmap.fusion import Config, Frame, fit_models, fuse, render_label, slot_views
-from rowmap.fusion.association import code, row_fruits, slot_table
+from rowmap.fusion.association import row_fruits, slot_table
 from rowmap.geometry import POSE_COLS, window_alignments, with_sensor_depth
 from rowmap.renders import PANOPTIC_KINDS, Renders, encode
 
@@ -24,17 +24,17 @@ INPUTS = ("frames", "windows", "window_poses", "window_metrics", "nerf", "render
 OUTPUTS = ("panoptic_frames", "panoptic", "fruit_slots")
 
 
-def window_views(windows: pd.DataFrame, window_poses: pd.DataFrame, window_metrics: pd.DataFrame,
-                 renders: Renders, ctx: StageContext) -> pd.DataFrame:
-    """(window_id, frame_id, offset, c2w) of every rendered validation frame of the fitted windows. Failed
-    windows and windows without panoptic renders are skipped with a note; a window with panoptic renders for
-    some validation frames but not others is an error naming what is missing."""
-    ok = set(window_metrics.loc[window_metrics.status == "ok", "window_id"].astype(int))
-    for wid in sorted(set(window_metrics.window_id.astype(int)) - ok):
+def window_views(inputs: dict, renders: Renders, cfg: Config, ctx: StageContext) -> pd.DataFrame:
+    """(window_id, frame_id, offset, c2w) of every rendered validation frame of the fitted windows, in the row
+    frame (align_windows). Failed windows and windows without panoptic renders are skipped with a note; a
+    window with panoptic renders for only some validation frames is an error naming what is missing."""
+    wm, wp, windows = inputs["window_metrics"], inputs["window_poses"], inputs["windows"]
+    ok = set(wm.loc[wm.status == "ok", "window_id"].astype(int))
+    for wid in sorted(set(wm.window_id.astype(int)) - ok):
         ctx.count("windows_failed_skipped")
         ctx.note(f"window {wid} failed in nerf_fit; its frames are not fused")
     val = windows[windows.split == "val"][["window_id", "frame_id", "offset"]]
-    v = val.merge(window_poses, on=["window_id", "frame_id"], how="inner", suffixes=("", "_pose"))
+    v = val.merge(wp, on=["window_id", "frame_id"], how="inner", suffixes=("", "_pose"))
     rows = []
     for wid, g in v[v.window_id.isin(ok)].groupby("window_id"):
         have = [renders.has(int(wid), int(f), *PANOPTIC_KINDS) for f in g.frame_id]
@@ -53,6 +53,14 @@ def window_views(windows: pd.DataFrame, window_poses: pd.DataFrame, window_metri
         return pd.DataFrame(columns=["window_id", "frame_id", "offset", "c2w"])
     out = pd.concat(rows, ignore_index=True)
     out["c2w"] = list(pose_matrix(out[list(POSE_COLS)].to_numpy(np.float64)))
+    if cfg.align_windows:
+        align = window_alignments(wp[wp.window_id.isin(out.window_id.unique())])
+        moved = [align[int(w)] @ c for w, c in zip(out.window_id, out.c2w)]
+        # how far a camera moved (not the transform's translation, which a small rotation about a far origin
+        # makes large)
+        ctx.summary["window_alignment_max_m"] = round(max(float(np.linalg.norm(m[:3, 3] - c[:3, 3]))
+                                                          for m, c in zip(moved, out.c2w)), 4)
+        out["c2w"] = moved
     return out[["window_id", "frame_id", "offset", "c2w"]]
 
 
@@ -60,19 +68,16 @@ def intrinsics(fr) -> np.ndarray:
     return np.array([fr.fx, fr.fy, fr.cx, fr.cy], np.float64)
 
 
-def read_slots(views: pd.DataFrame, frames: pd.DataFrame, renders: Renders, shared: set[int], cfg: Config,
-               ctx: StageContext) -> tuple[dict, dict, dict]:
+def read_slots(views: pd.DataFrame, frames: pd.DataFrame, renders: Renders, cfg: Config, ctx: StageContext
+               ) -> tuple[dict, dict]:
     """Every rendered frame's slot views ((window, slot) -> {(frame, group): SlotView}) and slot-code map
-    ((window, frame) -> [H, W], 0 = no slot), and those maps of the frames several windows rendered (the
-    association's masks). The renders are read and cut into slots on every core (pipeline.parallel.in_order),
-    in views' order."""
-    def read(r) -> tuple[int, int, dict, np.ndarray]:
+    ((window, frame) -> [H, W], 0 = no slot), the renders read and cut into slots on every core."""
+    def read(r) -> tuple:
         wid, fid = int(r.window_id), int(r.frame_id)
         fr = frames.loc[fid]
         sem, inst, depth = (renders.read(wid, fid, k, (int(fr.height), int(fr.width))) for k in PANOPTIC_KINDS)
         sensor = with_sensor_depth(np.zeros_like(depth), ctx.abspath(fr.depth_path), fr.depth_scale_m)
-        found, group = slot_views(sem, inst, depth, sensor, intrinsics(fr), r.c2w, list(THING_IDS), cfg)
-        return wid, fid, found, np.where(np.isin(sem, THING_IDS) & (inst > 0), code(inst, group), 0).astype(np.int32)
+        return wid, fid, *slot_views(sem, inst, depth, sensor, intrinsics(fr), r.c2w, list(THING_IDS), cfg)
 
     per_slot: dict[tuple[int, int], dict] = defaultdict(dict)
     codes = {}
@@ -81,16 +86,14 @@ def read_slots(views: pd.DataFrame, frames: pd.DataFrame, renders: Renders, shar
         codes[(wid, fid)] = code_map
         for (slot, g), sv in found.items():
             per_slot[(wid, slot)][(fid, g)] = sv
-    return per_slot, codes, {key: c for key, c in codes.items() if key[1] in shared}
+    return per_slot, codes
 
 
 class FrameReader:
-    """Reads one frame's inputs for the fusion: every window's render of it with its slots mapped to row
-    fruits (`lut`), composed into one render label (render_label), the placing depth and the detector
-    segments. With keep (the fusion's last round, whose frames are written) it also keeps {frame: (composed
-    semantic, depth, whether any pixel came from another window than the nearest)} in `kept` until the frame
-    is written; the earlier rounds write nothing and keep nothing (kept for every frame, those held gigabytes
-    at 1280x720)."""
+    """Reads one frame's inputs for the fusion: every window's render of it with its slot codes mapped to row
+    fruits (`lut`), composed into one render label (render_label), the placing depth and the detector segments.
+    With keep (the last round, whose frames are written) it keeps {frame: (composed semantic, depth, whether a
+    pixel came from another window than the nearest)} in `kept` until the frame is written."""
 
     def __init__(self, frames: pd.DataFrame, renders: Renders, by_frame: dict[int, pd.DataFrame], codes: dict,
                  lut: dict, support: dict, dropped: dict, ctx: StageContext):
@@ -137,7 +140,6 @@ def write_frame(fid: int, fused: np.ndarray, models, reader: FrameReader, n_wind
     depth_path = reader.renders.relpath(int(r.window_id), fid, "depth")
     if composed:
         ctx.count("frames_composed_from_several_windows")
-        (out_dir / "depth").mkdir(exist_ok=True)
         write_png(out_dir / "depth" / name, encode("depth", depth))
         depth_path = ctx.relpath("panoptic", f"depth/{name}")
     return {"frame_id": fid, "stamp_ns": int(fr.stamp_ns), "window_id": int(r.window_id), "offset": int(r.offset),
@@ -148,28 +150,10 @@ def write_frame(fid: int, fused: np.ndarray, models, reader: FrameReader, n_wind
             **dict(zip(POSE_COLS, pose_txyzq(r.c2w[None])[0].tolist()))}
 
 
-def slots_table(local: list) -> pd.DataFrame:
-    """The fruit_slots table: one row per local fruit."""
-    return pd.DataFrame([{
-        "window_id": lf.window_id, "slot": lf.slot, "part": lf.part, "fruit_id": lf.fruit_id,
-        "class_id": lf.class_id, "n_frames": len({f for f, _ in lf.frames}), "n_px": lf.n_px,
-        **{f"{a}_m": None if lf.centre is None else float(lf.centre[i]) for i, a in enumerate("xyz")},
-        "drop_reason": lf.drop_reason} for lf in local], columns=schemas.get("fruit_slots").names)
-
-
 def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]:
     frames: pd.DataFrame = inputs["frames"].set_index("frame_id", drop=False)
     renders = Renders(inputs["renders"], ctx.data_root)
-    views = window_views(inputs["windows"], inputs["window_poses"], inputs["window_metrics"], renders, ctx)
-    if cfg.align_windows and not views.empty:
-        wp = inputs["window_poses"]
-        align = window_alignments(wp[wp.window_id.isin(views.window_id.unique())])
-        moved = [align[int(w)] @ c for w, c in zip(views.window_id, views.c2w)]
-        # how far the alignment moved a camera (not the transform's translation, which a small rotation about
-        # a far origin makes large)
-        ctx.summary["window_alignment_max_m"] = round(max(float(np.linalg.norm(m[:3, 3] - c[:3, 3]))
-                                                          for m, c in zip(moved, views.c2w)), 4)
-        views["c2w"] = moved
+    views = window_views(inputs, renders, cfg, ctx)
     out_dir = ctx.output_dir("panoptic")
     for sub in ("semantic", "instance"):
         (out_dir / sub).mkdir(parents=True, exist_ok=True)
@@ -183,8 +167,8 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
                          f"frames.parquet; rerun the pipeline from ingest")
     n_win = views.groupby("frame_id").window_id.nunique()
     shared = set(n_win[n_win > 1].index.astype(int))
-    per_slot, codes, masks = read_slots(views, frames, renders, shared, cfg, ctx)
-    local, groups = row_fruits(per_slot, masks, cfg)
+    per_slot, codes = read_slots(views, frames, renders, cfg, ctx)
+    local, groups = row_fruits(per_slot, {key: c for key, c in codes.items() if key[1] in shared}, cfg)
     if len(groups) > 65535:
         raise ValueError(f"panoptic_fusion: {len(groups)} fruits do not fit 16-bit instance PNGs (max 65535)")
     pick = views.assign(abs_off=views.offset.abs()).sort_values(["frame_id", "abs_off", "window_id"])
@@ -199,5 +183,9 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
     ctx.count("slots_dropped", sum(lf.fruit_id == 0 for lf in local))
     ctx.summary.update(windows=int(views.window_id.nunique()), frames=len(rows), fruits=max(models, default=0),
                        fruits_split_off=max(models, default=0) - len(groups), frames_in_several_windows=len(shared))
-    return {"panoptic_frames": pd.DataFrame(rows, columns=schemas.get("panoptic_frames").names),
-            "fruit_slots": slots_table(local)}
+    slots = pd.DataFrame([{
+        "window_id": lf.window_id, "slot": lf.slot, "part": lf.part, "fruit_id": lf.fruit_id,
+        "class_id": lf.class_id, "n_frames": len({f for f, _ in lf.frames}), "n_px": lf.n_px,
+        **{f"{a}_m": None if lf.centre is None else float(lf.centre[i]) for i, a in enumerate("xyz")},
+        "drop_reason": lf.drop_reason} for lf in local], columns=schemas.get("fruit_slots").names)
+    return {"panoptic_frames": pd.DataFrame(rows, columns=schemas.get("panoptic_frames").names), "fruit_slots": slots}

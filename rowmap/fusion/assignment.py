@@ -1,14 +1,24 @@
-"""One assignment per frame: each pixel takes the option (background or a candidate fruit) of least cost.
+"""One assignment per frame, in rounds. Each pixel takes the option (background or a fruit) of least cost,
 
     cost[p, o] = sum over terms t of WEIGHTS[t] * term_t[p, o]        (each term in [0, 1])
 
-docs/fusion.md has the table of the terms (the cost of a fruit and of background) and a worked pixel."""
+then the fruit models are refitted from what they were given and every frame is assigned again. The models
+change only between rounds, so a round's frames are worked on by several threads; they come back in frame
+order, so the output does not depend on the thread count. docs/fusion.md has the table of the terms."""
 from __future__ import annotations
+
+from collections import defaultdict
+from collections.abc import Callable, Iterable, Iterator
 
 import numpy as np
 
-from rowmap.fusion.evidence import Evidence
+from nerf.surfaces import robust_centre
+from pipeline.parallel import available_cores, in_order
+from rowmap.fusion.association import MAX_POINTS, min_group_px
+from rowmap.fusion.evidence import Evidence, Frame, frame_evidence
+from rowmap.fusion.models import FruitModels, update
 from rowmap.fusion.settings import Config
+from rowmap.geometry import subsample
 
 WEIGHTS = {"render": 1.0, "detector": 0.8, "shape": 1.5, "surface": 0.6, "order": 1.5}
 """the weight of each term in the cost (render 1 sets the scale)."""
@@ -47,10 +57,63 @@ def cost(ev: Evidence, cfg: Config) -> np.ndarray:
     return total
 
 
-def assign(ev: Evidence, cfg: Config) -> np.ndarray:
-    """[P] the fruit id of each evidence pixel (0 = background): the argmin of `cost`, ties to the render's
-    option."""
+def fused_label(frame: Frame, models: FruitModels, owners: dict, cfg: Config) -> tuple[np.ndarray, Evidence, np.ndarray]:
+    """([H, W] fused fruit ids of one frame: 0 = background, -1 = void where the render had a dropped slot and
+    the pixel stays background; the evidence; [P] the id each evidence pixel takes, the argmin of `cost`)."""
+    ev = frame_evidence(frame, models, owners, cfg)
     c = cost(ev, cfg)
-    c[np.arange(len(c)), ev.render] -= 1e-6
-    return np.r_[0, ev.ids][c.argmin(1)]
+    c[np.arange(len(c)), ev.render] -= 1e-6   # ties go to the render's option
+    ids = np.r_[0, ev.ids][c.argmin(1)]
+    out = frame.label.copy()
+    was = out.ravel()[ev.pixels]
+    out.ravel()[ev.pixels] = np.where((ids == 0) & (was < 0), -1, ids)
+    return out, ev, ids
 
+
+def round_views(frame: Frame, models: FruitModels, owners: dict, cfg: Config) -> tuple[list, list]:
+    """What one frame gives the refit: [(fruit, its pixels' points)] and [(fruit, (frame, segment, pixels,
+    centre [3], points))] of the detector segments lying mostly on fruits, each given to the fruit holding most
+    of it (at least min_group_px of its pixels)."""
+    _, ev, ids = fused_label(frame, models, owners, cfg)
+    grown, segs, taken = [], [], set()
+    for f in np.unique(ids[ids > 0]):
+        pts = ev.points[ids == f]
+        grown.append((int(f), pts[subsample(len(pts), MAX_POINTS)]))
+    if cfg.detector_split_m <= 0:
+        return grown, segs
+    on = (ids > 0) & (ev.segment > 0)
+    size = np.bincount(ev.segment, minlength=1)
+    covered = np.bincount(ev.segment[on], minlength=len(size))
+    keys, inverse, n = np.unique(ids[on] * len(size) + ev.segment[on], return_inverse=True, return_counts=True)
+    min_px = min_group_px(frame.label.shape)
+    for j in np.argsort(-n, kind="stable"):
+        f, s = divmod(int(keys[j]), len(size))
+        if n[j] >= min_px and 2 * covered[s] > size[s] and s not in taken:
+            taken.add(s)
+            pts = ev.points[on][inverse == j]
+            segs.append((f, (frame.frame_id, s, int(n[j]), robust_centre(pts)[0], pts[:: max(1, len(pts) // 400)])))
+    return grown, segs
+
+
+def fuse(frame_ids: Iterable[int], load: Callable[[int], Frame], models: FruitModels, cfg: Config,
+         progress: Callable = lambda it, label, total: it, threads: int = 0,
+         load_last: Callable[[int], Frame] | None = None) -> Iterator[tuple[int, np.ndarray, FruitModels]]:
+    """(frame id, fused label [H, W], the final models) per frame of the last round, in frame order; each round
+    before it refits the models (models.update) with what round_views collects. `threads`: frames at once (0 =
+    every core); `load` must be thread-safe. `load_last` (default `load`) loads the last round's frames, so a
+    caller can keep what it writes with a frame only there."""
+    frame_ids, owners, threads = list(frame_ids), {}, threads or available_cores()
+    for r in range(cfg.refine_rounds):
+        grown: dict[int, list[np.ndarray]] = defaultdict(list)
+        seg_views: dict[int, list[tuple]] = defaultdict(list)
+        views = in_order(lambda fid: round_views(load(fid), models, owners, cfg), frame_ids, threads)
+        for points, segs in progress(views, f"fusion round {r + 1}", len(frame_ids)):
+            for f, pts in points:
+                grown[f].append(pts)
+            for f, view in segs:
+                seg_views[f].append(view)
+        models, owners = update(models, grown, seg_views, cfg)
+    last = load_last or load
+    fused = in_order(lambda fid: (fid, fused_label(last(fid), models, owners, cfg)[0]), frame_ids, threads)
+    for fid, out in progress(fused, "write fused frames", len(frame_ids)):
+        yield fid, out, models

@@ -9,6 +9,7 @@ from itertools import combinations
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
+from scipy.sparse.csgraph import connected_components
 
 from nerf.config import BASE_PIXELS
 from nerf.surfaces import fruit_sphere, robust_centre, unproject
@@ -18,8 +19,7 @@ from rowmap.geometry import pixel_groups, runs_by_key, sphere_behind, subsample
 MAX_GROUPS = 256
 """pixel groups one slot can split into in one frame (further groups stay with the largest)."""
 MIN_GROUP_PX = 50
-"""pixels of a 320x180 image (nerf.config.BASE_PIXELS; larger images scale it by their area, min_group_px): a
-smaller group stays with its slot's largest group in that frame."""
+"""pixels of a 320x180 image (min_group_px scales it by area): a smaller group stays with its slot's largest."""
 MIN_SLOT_PX = 4
 """pixels over all frames: a smaller slot is dropped (its pixels become void)."""
 MAX_POINTS = 400
@@ -31,9 +31,8 @@ STRONG_OVERLAP = 0.8
 
 
 def min_group_px(shape: tuple[int, ...]) -> int:
-    """MIN_GROUP_PX for images of `shape` (H, W, ...): grown with the image area above 320x180, so a group is
-    the same share of the image at every size (renders at a working scale are stored at full size: at
-    1280x720 each working pixel is 16 stored pixels). Example: (720, 1280) -> 800."""
+    """MIN_GROUP_PX for images of `shape` (H, W, ...), the same share of the image at every size (renders at a
+    working scale are stored at full size). Example: (720, 1280) -> 800."""
     return int(round(MIN_GROUP_PX * max(1.0, shape[0] * shape[1] / BASE_PIXELS)))
 
 
@@ -71,13 +70,11 @@ class LocalFruit:
 
 def slot_views(sem: np.ndarray, inst: np.ndarray, depth: np.ndarray, sensor: np.ndarray, k: np.ndarray,
                c2w: np.ndarray, thing_ids: list[int], cfg: Config) -> tuple[dict, np.ndarray]:
-    """The slot views of one rendered frame ({(slot, group): SlotView}) and its group map [H, W] (0 = the
-    slot's largest group or no slot). `sensor`: the recorded z-depth in m (0 = none)."""
+    """The slot views of one rendered frame ({(slot, group): SlotView}) and its slot-code map [H, W] (code of
+    the pixel's slot and group; 0 = no slot). `sensor`: the recorded z-depth in m (0 = none)."""
     thing = np.isin(sem, thing_ids) & (inst > 0)
-    group = np.zeros(inst.shape, np.int32)
-    out = {}
-    v, u = np.nonzero(thing)
-    v, u, ids, starts, ends = runs_by_key(v, u, inst[v, u])
+    group, out = np.zeros(inst.shape, np.int32), {}
+    v, u, ids, starts, ends = runs_by_key(*np.nonzero(thing), inst[thing])
     min_px = min_group_px(inst.shape)
     for s0, s1 in zip(starts, ends):
         vv, uu = v[s0:s1], u[s0:s1]
@@ -97,7 +94,7 @@ def slot_views(sem: np.ndarray, inst: np.ndarray, depth: np.ndarray, sensor: np.
             cls = np.bincount(sem[vv[mine], uu[mine]], minlength=max(thing_ids) + 1)
             out[(int(ids[s0]), g)] = SlotView(int(mine.sum()), cls, pts_g[subsample(len(pts_g), MAX_POINTS)],
                                               c2w[:3, 3], offset)
-    return out, group
+    return out, np.where(thing, code(inst, group), 0).astype(np.int32)
 
 
 def split_frames(frame_centres: dict, dist_m: float, min_frames: int = 1) -> list[list]:
@@ -108,9 +105,7 @@ def split_frames(frame_centres: dict, dist_m: float, min_frames: int = 1) -> lis
     if dist_m <= 0 or len(keys) < 2:
         return [sorted(keys + rest)]
     pts = np.stack([frame_centres[f] for f in keys])
-    from scipy.sparse.csgraph import connected_components
-    near = np.linalg.norm(pts[:, None] - pts[None], axis=2) <= dist_m
-    _, lab = connected_components(near, directed=False)
+    _, lab = connected_components(np.linalg.norm(pts[:, None] - pts[None], axis=2) <= dist_m, directed=False)
     groups = sorted((sorted(f for f, g in zip(keys, lab) if g == c) for c in set(lab)), key=lambda g: (-len(g), g[0]))
     small = [f for g in groups[1:] if len(g) < min_frames for f in g]
     return [sorted(groups[0] + rest + small)] + [g for g in groups[1:] if len(g) >= min_frames]
@@ -152,8 +147,8 @@ def centre_distance(a: LocalFruit, b: LocalFruit) -> float:
 
 
 class MaskOverlaps:
-    """Slot masks of frames several windows rendered ({(window, frame): [H, W] codes, 0 = none}) as joint
-    histograms per (window pair, frame): every mask overlap is a sum over a few histogram entries."""
+    """Slot-code maps of frames several windows rendered ({(window, frame): [H, W]}) as joint histograms per
+    (window pair, frame): every mask overlap is a sum over a few histogram entries."""
 
     def __init__(self, masks: dict[tuple[int, int], np.ndarray]):
         self.masks, self._joint = masks, {}
@@ -163,7 +158,6 @@ class MaskOverlaps:
                 self.shared[pair].append(f)
 
     def frames(self, wa: int, wb: int) -> list[int]:
-        """The frames windows wa and wb both rendered."""
         return self.shared.get((min(wa, wb), max(wa, wb)), [])
 
     def joint(self, wa: int, wb: int, f: int) -> list[tuple[int, int, int]]:
@@ -201,9 +195,9 @@ def frame_codes(lfs: list[LocalFruit]) -> dict[int, set[int]]:
 
 
 def pair_cost(a: LocalFruit, b: LocalFruit, overlaps: MaskOverlaps, cfg: Config) -> float:
-    """distance / max_match_distance_m + (1 - mask IoU) of two local fruits of different windows (IoU 0.5 where
-    no shared frame shows them); inf past the gate, or under min_mask_iou. Masks lying inside one another by
-    STRONG_OVERLAP match up to twice the gate (a window that saw a fruit as a sliver centres it poorly)."""
+    """distance / max_match_distance_m + (1 - mask IoU) of two windows' local fruits (IoU 0.5 without a shared
+    frame); inf past the gate or under min_mask_iou. Masks inside one another by STRONG_OVERLAP match up to
+    twice the gate (a window that saw a fruit as a sliver centres it poorly)."""
     dist = np.inf if a.centre is None or b.centre is None else centre_distance(a, b)
     if dist > 2 * cfg.max_match_distance_m:
         return np.inf

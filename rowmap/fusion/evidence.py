@@ -12,12 +12,12 @@ from rowmap.fusion.models import FruitModels
 from rowmap.fusion.settings import Config
 
 BORDER_BAND_PX = 8
-"""reference pixels (320x180 image, scaled with the image): the band along the image edges where the render
-is weakest (a fruit entering the view is painted as leaf or as its neighbour)."""
+"""pixels of a 320x180 image (scaled with the image): the band along the image edges where the render is
+weakest (a fruit entering the view is painted as leaf or as its neighbour)."""
 BORDER_CONFIDENCE = 0.4
 """[0, 1]: the render's confidence in the border band."""
 MIN_HIDDEN_PX = 12
-"""reference pixels: fewer stuff pixels on a fruit's seen surface do not lower the render's confidence."""
+"""pixels of a 320x180 image: fewer stuff pixels on a fruit's seen surface do not lower the render's confidence."""
 
 
 @dataclass
@@ -51,10 +51,10 @@ class Evidence:
 
 
 def render_label(labels: list[np.ndarray], support: list[dict[int, float]]) -> tuple[np.ndarray, np.ndarray]:
-    """([H, W] one render label per pixel, [H, W] the window it came from) from the renders several windows
-    made of a frame (`labels`: fruit ids, 0 stuff, -1 void; the nearest window first; `support`: per window
-    {fruit: how well it saw it}). First a fruit from the window that saw it best, then stuff, then a fruit
-    from another window (which may have seen it only entering its stretch of row); ties: the nearer window."""
+    """([H, W] one render label per pixel, [H, W] the window it came from) from several windows' renders of a
+    frame (`labels`: fruit ids, 0 stuff, -1 void, nearest window first; `support`: per window {fruit: how well
+    it saw it}). First a fruit from the window that saw it best, then stuff, then a fruit from another window
+    (which may have seen it only entering its stretch of row); ties: the nearer window."""
     best: dict[int, tuple[float, int]] = {}   # among the windows that show the fruit in this frame
     for j, (s, lab) in enumerate(zip(support, labels)):
         for f in np.unique(lab[lab > 0]).tolist():
@@ -70,22 +70,11 @@ def render_label(labels: list[np.ndarray], support: list[dict[int, float]]) -> t
     return out, src
 
 
-def segment_owner(label: np.ndarray, segments: np.ndarray) -> np.ndarray:
-    """[n_segments] the fruit holding most of each detector segment in the render (0: none)."""
-    on = (label > 0) & (segments > 0)
-    owner = np.zeros(int(segments.max()) + 1, np.int64)
-    if on.any():
-        keys, n = np.unique(segments[on] * (int(label.max()) + 1) + label[on], return_counts=True)
-        order = np.argsort(n, kind="stable")   # the largest pair of each segment written last
-        owner[keys[order] // (int(label.max()) + 1)] = keys[order] % (int(label.max()) + 1)
-    return owner
-
-
 def frame_evidence(frame: Frame, models: FruitModels, owners: dict[tuple[int, int], int], cfg: Config) -> Evidence:
-    """The evidence of one frame. Candidates: the fruits the render paints and those whose sphere is in view.
-    The detector segment's fruit: `owners` ((frame, segment) -> fruit, from a split) or the render's
-    (segment_owner). The render's confidence is BORDER_CONFIDENCE in the border band and, on a stuff pixel on
-    a fruit's seen surface, that fruit's render pixels / its hidden surface pixels (at most 1)."""
+    """The evidence of one frame. Candidates: the fruits the render paints and those whose halo is in view. A
+    detector segment's fruit: `owners` ((frame, segment) -> fruit, from a split), else the fruit the render
+    paints on most of it. The render's confidence is BORDER_CONFIDENCE in the border band and, on a stuff pixel
+    on a fruit's seen surface, that fruit's render pixels / its hidden surface pixels (at most 1)."""
     h, w = frame.label.shape
     boxes = models.in_view((h, w), frame.k, frame.c2w, cfg)
     ids = np.array(sorted(set(np.unique(frame.label[frame.label > 0]).tolist()) | set(boxes)), np.int64)
@@ -99,9 +88,13 @@ def frame_evidence(frame: Frame, models: FruitModels, owners: dict[tuple[int, in
         keep[bv[near] + v0, bu[near] + u0] = True
     v, u = np.nonzero(keep)
     points = unproject(frame.depth, frame.k, frame.c2w, v, u)
-    rel, beyond, gap = models.query(ids.tolist(), points, frame.c2w[:3, 3], cfg.margin_m)
-    radii = models.spheres(ids.tolist())[1]
-    owner = segment_owner(frame.label, seg)
+    rel, beyond, gap, radii = models.query(ids.tolist(), points, frame.c2w[:3, 3], cfg.margin_m)
+    on, n_lab = (frame.label > 0) & (seg > 0), int(frame.label.max()) + 1
+    owner = np.zeros(int(seg.max()) + 1, np.int64)   # segment -> the fruit painted on most of it (0: none)
+    if on.any():
+        keys, n = np.unique(seg[on] * n_lab + frame.label[on], return_counts=True)
+        order = np.argsort(n, kind="stable")   # the largest pair of each segment written last
+        owner[keys[order] // n_lab] = keys[order] % n_lab
     for (f, s), g in owners.items():
         if f == frame.frame_id and s < len(owner):
             owner[s] = g

@@ -33,8 +33,8 @@ class FruitModel:
     surface: cKDTree | None = None     # the points inside the sphere, one per margin_m / 2 cube
 
     def refit(self, cfg: Config, keep_sphere: bool = False) -> "FruitModel":
-        """The sphere of its points (kept where none fits, or where it has one and keep_sphere) and the seen
-        surface: the points inside the sphere."""
+        """Fit the sphere to the points (kept where none fits, or with keep_sphere where there is one) and the
+        seen surface to the points inside it."""
         fit = None
         if (self.centre is None or not keep_sphere) and len(self.points) >= MIN_SPHERE_POINTS:
             fit = fruit_sphere(self.points[subsample(len(self.points), MAX_FIT_POINTS)], cfg.max_fruit_radius_m)
@@ -48,8 +48,7 @@ class FruitModel:
 
 
 def dot3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """[P, F] dot products of points a [P, 3] and b [F, 3], elementwise (a BLAS matmul of this shape is slower,
-    and much slower on a busy machine)."""
+    """[P, F] dot products of a [P, 3] and b [F, 3], elementwise (a BLAS matmul of this shape is slower)."""
     return a[:, :1] * b[:, 0] + a[:, 1:2] * b[:, 1] + a[:, 2:3] * b[:, 2]
 
 
@@ -57,8 +56,7 @@ class FruitModels(dict):
     """{fruit id: FruitModel}, with the query one frame's evidence needs."""
 
     def in_view(self, hw: tuple[int, int], k: np.ndarray, c2w: np.ndarray, cfg: Config) -> dict[int, tuple]:
-        """{fruit id: image box (v0, v1, u0, u1)} of the fruits whose sphere, widened to the halo
-        (halo_factor x radius + margin_m), meets the image."""
+        """{fruit id: image box (v0, v1, u0, u1)} of the fruits whose halo ball meets the image."""
         ids = [f for f, m in self.items() if m.centre is not None]
         if not ids:
             return {}
@@ -67,17 +65,13 @@ class FruitModels(dict):
         full = (0, hw[0], 0, hw[1])
         return {f: full if b is None else b for f, b in zip(ids, boxes) if b is None or (b[0] < b[1] and b[2] < b[3])}
 
-    def spheres(self, ids: list[int]) -> tuple[np.ndarray, np.ndarray]:
-        """(centres [F, 3], radii [F]) of fruits `ids`, nan for those without a sphere."""
-        centres = np.array([self[f].centre if self[f].centre is not None else [np.nan] * 3 for f in ids]).reshape(-1, 3)
-        return centres, np.array([self[f].radius for f in ids], np.float64)
-
     def query(self, ids: list[int], points: np.ndarray, eye: np.ndarray, margin_m: float
-              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """For points [P, 3] seen from `eye` and fruits `ids` [F]: (distance to the sphere's centre / radius,
-        distance beyond the centre along the point's ray in m, distance to the seen surface in m), each [P, F];
-        nan where a fruit has no sphere, inf where the surface is farther than margin_m or missing."""
-        centres, radii = self.spheres(ids)
+        distance beyond the centre along the point's ray in m, distance to the seen surface in m), each [P, F],
+        and the radii [F]; nan where a fruit has no sphere, inf where the surface is farther than margin_m."""
+        centres = np.array([self[f].centre if self[f].centre is not None else [np.nan] * 3 for f in ids]).reshape(-1, 3)
+        radii = np.array([self[f].radius for f in ids], np.float64)
         sq = (points ** 2).sum(1)[:, None] - 2 * dot3(points, centres) + (centres ** 2).sum(1)[None]
         rel = np.sqrt(np.maximum(sq, 0.0)) / radii
         ray = points - eye
@@ -88,14 +82,13 @@ class FruitModels(dict):
             near = np.flatnonzero(rel[:, j] <= 1.0 + 2 * margin_m / radii[j])
             if self[f].surface is not None and len(near):
                 gap[near, j] = self[f].surface.query(points[near], distance_upper_bound=margin_m)[0]
-        return rel, beyond, gap
+        return rel, beyond, gap, radii
 
 
 def fit_models(groups: list[list[int]], local: list[LocalFruit], views: dict, cfg: Config) -> FruitModels:
-    """The model of each row fruit (`groups` of `local` fruits carrying their fruit id; `views` their slot
-    views): the rendered points of all its views, moved by the median render -> sensor offset where that
-    offset exceeds what the halo tolerates ((halo_factor - 1) x radius + margin_m): a window that saw a fruit
-    in few frames can render it centimetres off where the sensor measures it."""
+    """The model of each row fruit (`groups` of `local` fruits; `views` their slot views): its views' rendered
+    points, moved by the median render -> sensor offset where that exceeds what the halo tolerates
+    ((halo_factor - 1) x radius + margin_m; a window that saw a fruit in few frames can render it cm off)."""
     out = FruitModels()
     for g in groups:
         svs = [views[(local[i].window_id, local[i].slot)][key] for i in g for key in local[i].frames]
@@ -114,12 +107,11 @@ def fit_models(groups: list[list[int]], local: list[LocalFruit], views: dict, cf
 
 
 def detector_clusters(views: list[tuple], ball: tuple | None, cfg: Config) -> tuple[np.ndarray, list[np.ndarray]]:
-    """The fruits one row fruit holds by its detector segments. `views`: (frame, segment, pixels, centre [3],
-    points) of the segments given to it. Centres closer than detector_split_m link (single linkage); two
-    clusters are two fruits where both are seen in MIN_SPLIT_FRAMES frames and together in as many, where
-    they share a frame and the smaller lies off the fruit's sphere `ball` (centre, radius; None: no sphere),
-    or where one lies off the sphere beside the largest. Returns (cluster of each view, -1 none; centres, the
-    cluster with the most pixels first), or (all -1, []) for one fruit."""
+    """The fruits one row fruit holds by its detector segments `views` ((frame, segment, pixels, centre [3],
+    points) each). Centres closer than detector_split_m link; two clusters are two fruits where both are seen in
+    MIN_SPLIT_FRAMES frames and together in as many, where they share a frame and the smaller lies off the
+    fruit's sphere `ball` ((centre, radius) or None), or where one lies off it beside the largest. Returns
+    (cluster of each view, -1 none; their centres, most pixels first), or (all -1, []) for one fruit."""
     labels = np.full(len(views), -1)
     if cfg.detector_split_m <= 0 or len(views) < 2:
         return labels, []
@@ -147,43 +139,38 @@ def detector_clusters(views: list[tuple], ball: tuple | None, cfg: Config) -> tu
     return np.array([rank.get(c, -1) for c in raw]), [np.median(pts[raw == c], 0) for c in order]
 
 
-def split(models: FruitModels, fruit: int, views: list[tuple], cfg: Config) -> dict[tuple[int, int], int]:
-    """Split `fruit` by its detector segments (detector_clusters): cluster 0 keeps the id, each other cluster
-    joins the fruit whose centre lies within max_match_distance_m (or inside its sphere), else is a new fruit.
-    The clusters' models are fitted to their segments' points. Returns {(frame, segment): fruit id}."""
-    m = models[fruit]
-    labels, centres = detector_clusters(views, None if m.centre is None else (m.centre, m.radius), cfg)
-    if not centres:
-        return {}
-    ids = [fruit]
-    for j in range(1, len(centres)):
-        near = [(float(np.linalg.norm(o.centre - centres[j])), g) for g, o in models.items()
-                if g not in ids and o.centre is not None and np.linalg.norm(o.centre - centres[j])
-                <= max(cfg.max_match_distance_m, o.radius + cfg.margin_m)]
-        ids.append(min(near)[1] if near else max(models) + 1)
-        if not near:
-            models[ids[-1]] = FruitModel(m.class_id, np.zeros((0, 3)))
-    for j, g in enumerate(ids):
-        pts = np.concatenate([v[4] for v, lab in zip(views, labels) if lab == j])
-        if j == 0 or models[g].centre is None:
-            models[g] = FruitModel(m.class_id, pts).refit(cfg)
-        else:
-            models[g].points = np.concatenate([models[g].points, pts])
-    return {(v[0], v[1]): ids[lab] for v, lab in zip(views, labels) if lab >= 0}
-
-
 def update(models: FruitModels, grown: dict[int, list[np.ndarray]], seg_views: dict[int, list[tuple]],
            cfg: Config) -> tuple[FruitModels, dict[tuple[int, int], int]]:
-    """Refit the models after a round: each fruit's seen surface grows by the points it was given (`grown`),
-    and the fruits whose detector segments (`seg_views`) show several fruits are split. Returns the models and
-    {(frame, segment): fruit id} of the split fruits' segments (the detector evidence of the next round)."""
+    """Refit the models after a round: each fruit's seen surface grows by the points it was given (`grown`); a
+    fruit whose detector segments (`seg_views`) form several clusters (detector_clusters) is split: cluster 0
+    keeps its id, each other joins the fruit whose centre lies within max_match_distance_m (or inside its
+    sphere), else is a new fruit. Returns the models and {(frame, segment): fruit id} of the split fruits'
+    segments (the detector evidence of the next round)."""
     out = FruitModels()
     for f, m in models.items():
         pts = np.concatenate([m.points, *grown.get(f, [])]) if grown.get(f) else m.points
         out[f] = FruitModel(m.class_id, pts, m.centre, m.radius).refit(cfg, keep_sphere=True)
     owners = {}
-    for f, views in sorted(seg_views.items()):
-        if f in out:
-            owners.update(split(out, f, views, cfg))
+    for fruit, views in sorted(seg_views.items()):
+        m = out.get(fruit)
+        if m is None:
+            continue
+        labels, centres = detector_clusters(views, None if m.centre is None else (m.centre, m.radius), cfg)
+        if not centres:
+            continue
+        ids = [fruit]
+        for j in range(1, len(centres)):
+            near = [(float(np.linalg.norm(o.centre - centres[j])), g) for g, o in out.items()
+                    if g not in ids and o.centre is not None and np.linalg.norm(o.centre - centres[j])
+                    <= max(cfg.max_match_distance_m, o.radius + cfg.margin_m)]
+            ids.append(min(near)[1] if near else max(out) + 1)
+            if not near:
+                out[ids[-1]] = FruitModel(m.class_id, np.zeros((0, 3)))
+        for j, g in enumerate(ids):   # the clusters' models are fitted to their segments' points
+            pts = np.concatenate([v[4] for v, lab in zip(views, labels) if lab == j])
+            if j == 0 or out[g].centre is None:
+                out[g] = FruitModel(m.class_id, pts).refit(cfg)
+            else:
+                out[g].points = np.concatenate([out[g].points, pts])
+        owners.update({(v[0], v[1]): ids[lab] for v, lab in zip(views, labels) if lab >= 0})
     return out, owners
-

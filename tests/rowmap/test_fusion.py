@@ -200,7 +200,7 @@ def test_fuse_loads_each_frame_once_per_round_and_the_last_round_through_load_la
     rounds do not hold it for every frame of the row."""
     from collections import Counter
 
-    from rowmap.fusion.rounds import fuse
+    from rowmap.fusion import fuse
 
     cfg = Config()
     centres = [np.array([0.0, 0.0, 0.5])]
