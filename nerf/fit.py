@@ -15,6 +15,7 @@ import numpy as np
 
 from nerf.config import NerfConfig, PanopticConfig
 from nerf.depth_poses import DepthPoses, depth_initial_poses
+from nerf.memory import release_freed
 from nerf.panoptic.complete import complete_instances
 from nerf.panoptic.labels import WindowLabels
 from nerf.panoptic.render import render_panoptic
@@ -50,7 +51,7 @@ class WindowFit:
 
     colour: FitResult
     """model, final poses [N, 4, 4], and the validation frames' renders (window frame index -> render dict:
-    rgb (uint8), depth, opacity, with the panoptic phase also semantic and instance) with their PSNR and timing."""
+    rgb (uint8), depth, with the panoptic phase also semantic and instance) with their PSNR and timing."""
     panoptic: PanopticResult | None
     """the panoptic part (None with the panoptic phase off)."""
     initial_poses: np.ndarray
@@ -70,6 +71,7 @@ def fit_colour(data: WindowData, cfg: NerfConfig, depth_poses: DepthPoses = "off
     poses, depth_info = depth_initial_poses(depth_poses, data.depths, data.intrinsics, data.poses_c2w,
                                             max_depth_m=icp_max_depth_m)
     report(1, 1, {"phase": "depth poses"})
+    release_freed()  # ICP's point clouds (C++ heap) are not held through the colour fit
     fitted = copy.copy(data)
     fitted.poses_c2w = poses
     try:
@@ -108,6 +110,7 @@ def fit_panoptic_window(data: WindowData, labels: WindowLabels | Callable[[], Wi
         colour.result = copy.deepcopy(colour.result)  # the panoptic phase may train the colour grid (grid_mode shared)
     fitted, res = colour.data, colour.result
     report = progress or _silent
+    release_freed()  # each phase below starts without the last one's freed arrays resident
     pan = None
     if not panoptic.enabled:
         validate(res, fitted, _reporting(res.model.render_image, fitted.is_train, "validation render", progress))
@@ -121,10 +124,12 @@ def fit_panoptic_window(data: WindowData, labels: WindowLabels | Callable[[], Wi
         except Exception as err:
             raise RuntimeError(f"{name} (panoptic phase): {err}") from err
         del window_labels  # a window's label images are not needed past the fit (hundreds of MB at 1280x720)
+        release_freed()
         scale = working_scale(render_scale, res.model.wh[0])
         render = render_at(lambda m, i: render_panoptic(m, pan, i), res.model, scale, set(full_size))
         validate(res, fitted, _reporting(render, fitted.is_train, "panoptic validation render", progress))
         val = [int(i) for i in np.flatnonzero(~fitted.is_train)]
+        release_freed()
         report(0, 1, {"phase": "instance completion"})
         complete_instances([res.renders[i] for i in val], fitted.intrinsics[val], res.poses_c2w[val], pan.cfg)
         report(1, 1, {"phase": "instance completion"})

@@ -20,6 +20,7 @@ from nerf._ext import load_permuto_ext
 from nerf.config import NerfConfig
 from nerf.fields import build_field, param_count
 from nerf.metrics import psnr, psnr_from_mse
+from nerf.memory import release_freed
 from nerf.model import NerfModel, init_occupancy
 from nerf.occupancy import OccupancyGrid
 from nerf.pixel_sampling import draw_pixels, gradient_cdf
@@ -108,6 +109,7 @@ def fit_window(data: WindowData, cfg: NerfConfig, device: str = "cpu",
     grid = OccupancyGrid(scene.lo, scene.hi, cfg.occupancy_res, dev)
     model = NerfModel(cfg, fld, grid, scene, c2w0.clone(), k, (w, h))
     init_occupancy(model, depths, c2w0, k)
+    release_freed()  # its per-frame rays and points (hundreds of MB at 1280x720) are not held through the steps
     poses = PoseCorrection(n, scene.scale_m).to(dev)
     train_idx = torch.from_numpy(np.flatnonzero(data.is_train)).to(dev)
     val_idx = torch.from_numpy(np.flatnonzero(~data.is_train)).to(dev)
@@ -184,11 +186,11 @@ def fit_window(data: WindowData, cfg: NerfConfig, device: str = "cpu",
 
 
 def validate(res: FitResult, data: WindowData, render: Callable[[int], dict]) -> None:
-    """Render every validation frame with `render(i)` (a dict with at least rgb [H, W, 3] and
-    samples_per_ray) and fill res.renders (their rgb as uint8 tensors, 0-255), val_psnr, samples_per_ray and
-    render_s_per_image. A render made at
-    a working scale carries its colour at that scale as "rgb_working" [h, w, 3] (not kept in res.renders): its
-    PSNR is measured there, against the recorded image area-averaged to that size."""
+    """Render every validation frame with `render(i)` (a dict with at least rgb [H, W, 3] and samples_per_ray)
+    and fill res.renders (rgb as uint8 tensors, 0-255; opacity left out), val_psnr, samples_per_ray and
+    render_s_per_image. A render made at a working scale carries its colour at that scale as "rgb_working"
+    [h, w, 3] (not kept in res.renders): its PSNR is measured there, against the recorded image area-averaged
+    to that size."""
     import cv2
 
     spr, render_s = [], []
@@ -199,8 +201,10 @@ def validate(res: FitResult, data: WindowData, render: Callable[[int], dict]) ->
         rgb, image = out.pop("rgb_working", out["rgb"]), data.images[i]
         if rgb.shape[:2] != image.shape[:2]:
             image = cv2.resize(image, (rgb.shape[1], rgb.shape[0]), interpolation=cv2.INTER_AREA)
-        # kept as the 8 bits it is stored as (rowmap.renders.encode rounds alike): a quarter of the memory
-        res.renders[i] = {**out, "rgb": (out["rgb"].clamp(0, 1) * 255).round().to(torch.uint8)}
+        # rgb kept as the 8 bits it is stored as (rowmap.renders.encode rounds alike): a quarter of the memory;
+        # opacity not kept (nothing downstream reads it; 3.7 MB a frame at 1280x720)
+        res.renders[i] = {**{k: v for k, v in out.items() if k != "opacity"},
+                          "rgb": (out["rgb"].clamp(0, 1) * 255).round().to(torch.uint8)}
         spr.append(out["samples_per_ray"])
         target = torch.from_numpy(image).to(rgb.device).float() / 255.0
         res.val_psnr[int(data.frame_ids[i])] = psnr(rgb, target)

@@ -19,6 +19,7 @@ from typing import Any
 import pandas as pd
 import yaml
 
+from nerf.memory import release_freed
 from pipeline import config as cfgmod
 from pipeline import codehash, dag, io, provenance
 from pipeline.catalog import DATASETS, dataset
@@ -215,6 +216,7 @@ class Runner:
                            show_progress=self.show_progress, progress_interval_s=run_cfg.progress_interval_s,
                            device=run_cfg.device, scheduler=run_cfg.scheduler or None, resume_dir=resume / key)
         print(f"[pag] {s.name}: running", file=sys.stderr)
+        release_freed()  # the last stage's freed heap is not counted in this one's peak, nor held through it
         t0 = time.perf_counter()
         memory = PeakMemory().start()  # this process and its workers
         try:

@@ -98,7 +98,9 @@ def fit_one(payload: dict) -> dict:
     import torch
 
     from nerf.fit import fit_panoptic_window
+    from nerf.memory import release_freed
 
+    release_freed()  # a worker fits window after window: the last one's freed heap is not carried into this one
     measured = resources.reset_own_peak()
     wid, out_dir, data_root = payload["window_id"], Path(payload["out_dir"]), Path(payload["data_root"])
     frames = pd.DataFrame(payload["frames"])

@@ -3,6 +3,8 @@ with the rendered depth, fit a plausible fruit sphere claims the stuff pixels of
 it (or whose ray passes through its core)."""
 from __future__ import annotations
 
+from collections.abc import Iterable
+
 import numpy as np
 from torch import Tensor
 
@@ -10,7 +12,7 @@ from nerf.config import PanopticConfig
 from nerf.surfaces import fruit_sphere, unproject
 
 
-def instance_spheres(frames: list[tuple[np.ndarray, np.ndarray]], intrinsics: np.ndarray, c2w: np.ndarray,
+def instance_spheres(frames: Iterable[tuple[np.ndarray, np.ndarray]], intrinsics: np.ndarray, c2w: np.ndarray,
                      cfg: PanopticConfig, max_per_frame: int = 400) -> dict[int, tuple[np.ndarray, float]]:
     """{instance id: (sphere centre [3], radius)} of the instances of a window's rendered frames
     (`frames` = [(instance [H, W], depth [H, W] metres)], with `intrinsics` [N, 4] fx fy cx cy and `c2w`
@@ -47,8 +49,9 @@ def complete_instances(frames: list[dict], intrinsics: np.ndarray, c2w: np.ndarr
     if not (cfg.complete_3d and cfg.instances and frames):
         return 0
     as_np = lambda a: a.detach().cpu().numpy() if isinstance(a, Tensor) else np.asarray(a)  # noqa: E731
-    depths = [as_np(f["depth"]).astype(np.float64) for f in frames]
-    spheres = instance_spheres([(f["instance"], d) for f, d in zip(frames, depths)], intrinsics, c2w, cfg)
+    # float64 depth made frame by frame, in each pass: a window's at once would hold 280 MB at 1280x720
+    metres = lambda f: as_np(f["depth"]).astype(np.float64)  # noqa: E731
+    spheres = instance_spheres(((f["instance"], metres(f)) for f in frames), intrinsics, c2w, cfg)
     if not spheres:
         return 0
     klass = {}
@@ -61,7 +64,8 @@ def complete_instances(frames: list[dict], intrinsics: np.ndarray, c2w: np.ndarr
     radii = np.array([spheres[i][1] for i in ids])                      # [S]
     reach = radii + cfg.complete_margin_m     # nothing outside this ball around a centre is claimed
     added = 0
-    for f, depth, k, pose in zip(frames, depths, intrinsics, c2w):
+    for f, k, pose in zip(frames, intrinsics, c2w):
+        depth = metres(f)
         v, u = np.nonzero((f["instance"] == 0) & (depth > 0) & near_spheres(depth.shape, k, pose, centres, reach))
         if not len(v):
             continue

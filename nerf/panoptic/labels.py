@@ -24,7 +24,10 @@ class WindowLabels:
         if not (self.semantic.shape == self.instance.shape == self.confidence.shape):
             raise ValueError(f"WindowLabels shapes differ: semantic {self.semantic.shape}, instance "
                              f"{self.instance.shape}, confidence {self.confidence.shape}")
-        conf = np.array(self.confidence, np.float32)  # one copy, cleaned in place (the caller's array is kept)
+        conf = np.asarray(self.confidence)
+        if conf.dtype == np.float32 and conf.size and 0 <= conf.min() and conf.max() <= 1:  # no NaN gets past min/max
+            return  # clean already: kept as given, not copied (a 1280x720 window's is hundreds of MB)
+        conf = np.array(conf, np.float32)  # one copy, cleaned in place (the caller's array is kept)
         np.nan_to_num(conf, copy=False, nan=0.0, posinf=1.0, neginf=0.0)
         self.confidence = np.clip(conf, 0, 1, out=conf)
 

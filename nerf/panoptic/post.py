@@ -9,12 +9,25 @@ from nerf.config import PanopticConfig
 
 def panoptic_labels(p_sem: np.ndarray, p_inst: np.ndarray, cfg: PanopticConfig,
                     depth: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Per-pixel distributions [H, W, D] / [H, W, N] -> semantic uint8 and instance int32 images.
+    """Per-pixel distributions [H, W, D] / [H, W, N] -> semantic uint8 and instance int32 images
+    (labels_from_slots with each pixel's most likely thing slot)."""
+    return labels_from_slots(p_sem, best_slot(p_inst), cfg, depth)
+
+
+def best_slot(p_inst: np.ndarray) -> np.ndarray:
+    """The most likely thing slot (1..N-1) of each pixel's instance distribution [..., N] (int64 [...])."""
+    return p_inst[..., 1:].argmax(-1) + 1
+
+
+def labels_from_slots(p_sem: np.ndarray, slot: np.ndarray, cfg: PanopticConfig,
+                      depth: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Per-pixel class distributions [H, W, D] and most likely thing slots [H, W] (best_slot) -> semantic uint8
+    and instance int32 images.
 
     A pixel is a thing when the fruit classes together are more likely than each stuff class (the
     ripeness classes split a fruit's probability three ways, so a plain argmax over the five classes
     calls a fruit of uncertain ripeness "plant"); it then takes the most likely thing class and the most
-    likely thing slot (1..N-1). Instances grow into touching pixels of the same slot whose fruit
+    likely thing slot. Instances grow into touching pixels of the same slot whose fruit
     probability exceeds cfg.grow_threshold (hysteresis) and, given the rendered `depth` [H, W], whose depth
     lies within cfg.grow_depth_m of the instance's sure pixels. Post-processing: each instance mask
     gets one 3x3 opening (erosion then dilation; the image border does not erode, so a fruit cut by it
@@ -27,7 +40,6 @@ def panoptic_labels(p_sem: np.ndarray, p_inst: np.ndarray, cfg: PanopticConfig,
     best_thing = things[p_sem[..., things].argmax(-1)] if things.size else stuff_sem
     p_fruit = p_sem[..., things].sum(-1)                                   # 0 without thing classes
     is_thing = (p_fruit >= (p_sem[..., stuff].max(-1) if stuff.size else 0.0)) & (things.size > 0)
-    slot = p_inst[..., 1:].argmax(-1) + 1
     if cfg.instances and things.size and cfg.grow_threshold < 1.0:
         is_thing = grow_instances(is_thing, slot, p_fruit > cfg.grow_threshold, depth, cfg.grow_depth_m)
     sem = np.where(is_thing, best_thing, stuff_sem)

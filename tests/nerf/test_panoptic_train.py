@@ -78,6 +78,27 @@ def test_checkpoint_round_trip_renders_the_same(fitted):
     assert np.array_equal(a["semantic"], b["semantic"]) and np.array_equal(a["instance"], b["instance"])
 
 
+def test_chunked_render_labels_equal_the_whole_image_distributions_labelled(fitted):
+    from nerf.panoptic.post import panoptic_labels
+    from nerf.panoptic.samples import ray_probs, weighted_samples
+    from nerf.render import pixel_rays
+
+    data, sem, inst, model = fitted
+    pres = fit_panoptic(model, detector_like(sem, inst), data.is_train, data.depths,
+                        PanopticConfig(steps=40, frames_per_step=2, rays_per_frame=128))
+    w, h = model.wh
+    c2w, k, u, v = model.image_pixels(1, None, None)
+    with torch.no_grad():
+        ks = weighted_samples(model, *pixel_rays(k.expand(len(u), 4), c2w.expand(len(u), 4, 4), u, v),
+                              pres.cfg.min_weight)
+        p_sem, p_inst = ray_probs(pres.field, ks)
+    sem_ref, inst_ref = panoptic_labels(p_sem.reshape(h, w, -1).numpy(), p_inst.reshape(h, w, -1).numpy(), pres.cfg,
+                                        ks.depth.reshape(h, w).numpy())
+    r = render_panoptic(model, pres, 1, chunk=500)          # 8 chunks, each reduced to its best slots
+    assert (inst_ref > 0).any()
+    assert np.array_equal(r["semantic"], sem_ref) and np.array_equal(r["instance"], inst_ref)
+
+
 def test_all_void_labels_train_nothing_and_still_render(fitted):
     data, sem, _, model = fitted
     void = WindowLabels(np.full(sem.shape, 255, np.uint8), np.zeros(sem.shape, np.int32), np.zeros(sem.shape, np.float32))
@@ -104,6 +125,16 @@ def test_nan_confidence_is_treated_as_zero():
     lab = WindowLabels(np.zeros((1, 2, 2), np.uint8), np.zeros((1, 2, 2), np.int32),
                        np.array([[[np.nan, 1.0], [np.inf, -1.0]]], np.float32))
     assert np.array_equal(lab.confidence, np.array([[[0.0, 1.0], [1.0, 0.0]]], np.float32))
+
+
+def test_confidence_is_copied_only_to_be_cleaned():
+    given = np.array([[[np.nan, 0.5], [2.0, 0.0]]], np.float32)
+    lab = WindowLabels(np.zeros((1, 2, 2), np.uint8), np.zeros((1, 2, 2), np.int32), given)
+    assert np.isnan(given[0, 0, 0]) and given[0, 1, 0] == 2.0                     # the caller's array is kept
+    clean = np.array([[[0.25, 0.5], [1.0, 0.0]]], np.float32)
+    assert WindowLabels(lab.semantic, lab.instance, clean).confidence is clean    # nothing to clean: not copied
+    as_double = WindowLabels(lab.semantic, lab.instance, clean.astype(np.float64)).confidence
+    assert as_double.dtype == np.float32 and np.array_equal(as_double, clean)
 
 
 def test_grow_threshold_outside_0_1_is_a_clear_error():

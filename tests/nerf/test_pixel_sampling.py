@@ -27,3 +27,21 @@ def test_edge_rays_are_drawn_where_the_image_has_texture():
     on_edge = (frame == 0) & ((col == 14) | (col == 15))
     assert on_edge.float().mean() > 0.8           # 40 of 1200 pixels carry the edge
     assert (frame == 1).any()                     # the floor keeps every pixel drawable
+
+
+def test_block_cdf_draws_what_a_search_of_the_whole_sum_draws():
+    from nerf.pixel_sampling import CDF_BLOCK, GradientCDF, draw_from_cdf
+
+    g = torch.Generator().manual_seed(3)
+    weights = torch.rand(7 * CDF_BLOCK + 37, generator=g) ** 4       # a partial last block, weights spanning 1e-8..1
+    weights[100:900] = 0.0                                           # whole blocks of zero weight
+    cdf = GradientCDF(weights)
+    whole = weights.double().cumsum(0)                               # what was searched before blocks
+    u = torch.cat([torch.rand(20000, generator=g, dtype=torch.float64) * whole[-1],
+                   whole[::97], whole[-1:], torch.zeros(1, dtype=torch.float64), whole[-1:] * 1.5])
+    expect = torch.searchsorted(whole, u)
+    assert torch.equal(cdf.search(u), expect)                        # every value, exact sums included
+    assert torch.equal(draw_from_cdf(cdf, 5000, torch.Generator().manual_seed(1)),
+                       torch.searchsorted(whole, torch.rand(5000, generator=torch.Generator().manual_seed(1),
+                                                            dtype=torch.float64) * whole[-1]).clamp_max(len(whole) - 1))
+    assert cdf.block_end.numel() * CDF_BLOCK >= len(weights) and cdf.weights.dtype == torch.float32
