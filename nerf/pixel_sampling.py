@@ -19,7 +19,7 @@ CDF_BLOCK = 64
 
 class GradientCDF:
     """The cumulative distribution of per-pixel weights [M] (flattened frames), held as the float32 weights and
-    the float64 cumulative sum at the end of every CDF_BLOCK-th pixel: a third of the memory of the whole
+    the float64 cumulative sum at the end of every CDF_BLOCK-th pixel: about half the memory of the whole
     float64 sum (at 1280x720 that sum is 7.4 MB per frame). A draw finds its block from the block ends, then
     its pixel by summing the block's weights from the block's start, sequentially in float64 as the whole sum
     runs, so every draw is the one a search of the whole sum would make (tested)."""
@@ -78,7 +78,7 @@ def draw_from_cdf(cdf: GradientCDF, n: int, g: torch.Generator) -> Tensor:
     return cdf.search(u).clamp_max(len(cdf) - 1)
 
 
-def draw_pixels(idx: Tensor, n: int, h: int, w: int, g: torch.Generator, cdf: Tensor | None = None,
+def draw_pixels(idx: Tensor, n: int, h: int, w: int, g: torch.Generator, cdf: GradientCDF | None = None,
                 n_edge: int = 0) -> tuple[Tensor, Tensor, Tensor]:
     """n pixels (frames, u, v) of the frames `idx` of [N, H, W] images: the first n_edge drawn from `cdf`
     (gradient_cdf of images[idx]), the rest uniformly."""

@@ -23,7 +23,7 @@ from nerf.metrics import psnr, psnr_from_mse
 from nerf.memory import release_freed
 from nerf.model import NerfModel, init_occupancy
 from nerf.occupancy import OccupancyGrid
-from nerf.pixel_sampling import draw_pixels, gradient_cdf
+from nerf.pixel_sampling import GradientCDF, draw_pixels, gradient_cdf
 from nerf.poses import PoseCorrection
 from nerf.render import Samples, accumulate, composite_weights, march, pixel_rays, transmittance
 from nerf.window import WindowData, depth_far_m, window_scene
@@ -224,7 +224,7 @@ def visible_samples(model: NerfModel, o: Tensor, d: Tensor, s: Samples, min_tran
 
 def register(model: NerfModel, poses: PoseCorrection, opt: torch.optim.Optimizer, c2w0: Tensor, k: Tensor,
              images: Tensor, val_idx: Tensor, steps: int, g: torch.Generator, rays: int = 1024,
-             anneal: float = 1.0, edge_cdf: Tensor | None = None, edge_share: float = 0.0) -> None:
+             anneal: float = 1.0, edge_cdf: GradientCDF | None = None, edge_share: float = 0.0) -> None:
     """Optimise only the validation poses against the frozen model (colour loss). The learning rates fall
     exponentially to `anneal` times their value over the steps (and are restored after); an `edge_share` of
     the rays is drawn from `edge_cdf` (gradient_cdf of images[val_idx]), the rest uniformly."""
