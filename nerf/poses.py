@@ -64,5 +64,10 @@ class PoseCorrection(nn.Module):
         out[:, :3, 3] = self.trans[idx] * self.scale_m
         return out
 
+    def shift_m(self, idx: Tensor) -> Tensor:
+        """[K] frame indices -> [K, 3] translation corrections in metres (camera frame; the norm is how far each
+        camera centre moved from its initial pose)."""
+        return self.trans[idx] * self.scale_m
+
     def apply(self, c2w_init: Tensor, idx: Tensor) -> Tensor:
         return c2w_init[idx] @ self.delta(idx)

@@ -152,6 +152,8 @@ def fit_window(data: WindowData, cfg: NerfConfig, device: str = "cpu",
             m = (~pose_rays) & depth_ok[frames, v, u]
             if m.any():
                 loss = loss + cfg.depth_loss_weight * torch.mean(torch.abs(dpred[m] - dgt[m]))
+        if pose_on and cfg.pose_shift_penalty > 0:
+            loss = loss + cfg.pose_shift_penalty * shift_cost(poses, train_idx)
         if not torch.isfinite(loss):
             raise NonFiniteLoss(f"non-finite loss ({float(loss.detach())}) at step {step}")
         opt.zero_grad(set_to_none=True)
@@ -212,6 +214,11 @@ def validate(res: FitResult, data: WindowData, render: Callable[[int], dict]) ->
     res.render_s_per_image = float(np.median(render_s)) if render_s else float("nan")
 
 
+def shift_cost(poses: PoseCorrection, idx: Tensor) -> Tensor:
+    """Mean over frames `idx` of the squared distance (m^2) their pose corrections move the camera centres."""
+    return poses.shift_m(idx).pow(2).sum(-1).mean()
+
+
 @torch.no_grad()
 def visible_samples(model: NerfModel, o: Tensor, d: Tensor, s: Samples, min_transmittance: float) -> Samples:
     """The samples whose transmittance T_i (exclusive, from the current density, no gradients) is at least
@@ -248,6 +255,8 @@ def register(model: NerfModel, poses: PoseCorrection, opt: torch.optim.Optimizer
             wts, _ = composite_weights(sigma, s.delta, s.ray_index, s.n_rays)
             rgb = accumulate(col, wts, s.ray_index, s.n_rays)
             loss = torch.mean((rgb - images[frames, v, u].float() / 255.0) ** 2)
+            if model.cfg.pose_shift_penalty > 0:
+                loss = loss + model.cfg.pose_shift_penalty * shift_cost(poses, val_idx)
             opt.zero_grad(set_to_none=True)
             if torch.isfinite(loss):
                 loss.backward()
