@@ -1,7 +1,7 @@
 """The pose refinement's shift penalty on one window: refined poses against the reference poses, per weight.
 
     pag bench pose_prior [--seq sun3d_office] [--data-root data/bench/real_rgbd] [--window 0]
-                         [--penalties 0,10,100] [--depth-poses STAGE|icp|scale|off] [--threads 2]
+                         [--penalties 0,10,100] [--depth-poses STAGE|icp|scale|off] [--seed 0] [--threads 2]
 
 Fits the window's colour phase (nerf/fit.py `fit_colour`, nerf_fit's model settings and ICP correction)
 once per `pose_shift_penalty` weight, and once with pose refinement off, all with the same seed, and scores
@@ -13,7 +13,7 @@ must correct its drift: the case where a penalty could hold back a correction th
 
 Output `pose_prior.parquet`, one row per variant: variant, pose_shift_penalty, refine_poses, ate_m,
 ate_train_m, ate_val_m, ate_initial_m (the poses the fit started from), ate_odometry_m, shift_train_mm and
-shift_val_mm (mean distance the refinement moved the cameras), train_psnr (dB, last steps), fit_s.
+shift_val_mm (mean distance the refinement moved the cameras), train_psnr (dB, last steps), fit_s, seed.
 """
 from __future__ import annotations
 
@@ -48,13 +48,16 @@ def reference_positions(data_root: Path, seq: str, stamps_ns: np.ndarray) -> np.
 
 
 def run(seq: str, data_root: Path, window: int = 0, penalties: tuple[float, ...] = (0.0, 10.0, 100.0),
-        depth_poses: str = "stage", threads: int = 2) -> pd.DataFrame:
+        depth_poses: str = "stage", threads: int = 2, model: dict | None = None, seed: int = 0) -> pd.DataFrame:
+    """Fit window `window` of `seq` (ingested and windowed under data_root) once per penalty and once without
+    refinement, all with nerf_fit's seed for the window plus `seed`; one table row per fit. `model`: further
+    NerfConfig settings over nerf_fit's (tests shorten the fit with it)."""
     from pipeline import dag
 
     torch.set_num_threads(threads)
     stage = dag.load_stage("nerf_fit").module           # through the DAG: the stage's own settings, no stage import
     scfg = stage.Config()
-    base = replace(stage.model_config(scfg), seed=scfg.seed + window)
+    base = replace(stage.model_config(scfg), seed=scfg.seed + window + seed, **(model or {}))
     how = scfg.depth_poses if depth_poses == "stage" else depth_poses
     w, _ = window_rows(data_root, seq, window)
     data = load_window(w, data_root)
@@ -75,7 +78,7 @@ def run(seq: str, data_root: Path, window: int = 0, penalties: tuple[float, ...]
                      "ate_odometry_m": ate_rmse(odo, ref), "shift_train_mm": float(shift[train].mean()),
                      "shift_val_mm": float(shift[~train].mean()) if (~train).any() else float("nan"),
                      "train_psnr": colour.result.train_psnr, "fit_s": time.perf_counter() - t0,
-                     "seq": seq, "window": window, "depth_poses": how})
+                     "seq": seq, "window": window, "depth_poses": how, "seed": cfg.seed})
         r = rows[-1]
         print(f"{name}: ATE {1e3 * r['ate_m']:.2f} mm (train {1e3 * r['ate_train_m']:.2f}, val "
               f"{1e3 * r['ate_val_m']:.2f}; odometry {1e3 * r['ate_odometry_m']:.2f}), moved {r['shift_train_mm']:.1f}"
@@ -91,12 +94,14 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--penalties", default="0,10,100", help="comma-separated pose_shift_penalty weights (per m^2)")
     p.add_argument("--depth-poses", default="stage", choices=["stage", "icp", "scale", "off"],
                    help="initial pose correction (stage = nerf_fit's default)")
+    p.add_argument("--seed", type=int, default=0, help="added to the fits' seed (nerf_fit's seed + window)")
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--out", type=Path, default=Path("data/bench"))
     a = p.parse_args(argv)
     penalties = tuple(float(x) for x in a.penalties.split(",") if x.strip())
-    df = run(a.seq, a.data_root, a.window, penalties, a.depth_poses, a.threads)
-    name = "pose_prior.parquet" if a.depth_poses == "stage" else f"pose_prior_{a.depth_poses}.parquet"
+    df = run(a.seq, a.data_root, a.window, penalties, a.depth_poses, a.threads, seed=a.seed)
+    name = "pose_prior" + ("" if a.depth_poses == "stage" else f"_{a.depth_poses}") + (f"_seed{a.seed}" if a.seed else "")
+    name += ".parquet"
     write_parquet(df, a.out / name)
     print(f"wrote {a.out / name}")
     return 0
