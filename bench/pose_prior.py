@@ -20,6 +20,7 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+import typing
 from dataclasses import replace
 from pathlib import Path
 
@@ -29,22 +30,25 @@ import torch
 
 from bench._common import window_rows, write_parquet
 from nerf.fit import fit_colour
+from nerf.depth_poses import DepthPoses
 from nerf.metrics import ate_rmse
+from rowmap.ground_truth import gt_poses_by_frame
 from rowmap.window_data import load_window
 
 POSITION = ["tx", "ty", "tz"]
 
 
-def reference_positions(data_root: Path, seq: str, stamps_ns: np.ndarray) -> np.ndarray:
-    """[N, 3] camera positions of gt/poses.parquet at the given frame stamps; an error naming the missing ones."""
+def reference_positions(data_root: Path, seq: str, frames: pd.DataFrame) -> np.ndarray:
+    """[N, 3] camera positions of gt/poses.parquet for `frames` (frame_id, stamp_ns), matched by stamp as
+    evaluate matches them (rowmap/ground_truth.py gt_poses_by_frame); an error naming frames without one."""
     path = Path(data_root) / "raw" / seq / "gt" / "poses.parquet"
     if not path.is_file():
         raise FileNotFoundError(f"{path} not found: the bench scores poses against a row's reference poses")
-    gt = pd.read_parquet(path).drop_duplicates("stamp_ns").set_index("stamp_ns")
-    missing = sorted(set(stamps_ns.tolist()) - set(gt.index))
+    gt = gt_poses_by_frame(pd.read_parquet(path), frames).set_index("frame_id")
+    missing = frames.loc[~frames.frame_id.isin(gt.index), "stamp_ns"].tolist()
     if missing:
         raise ValueError(f"{path} has no pose at {len(missing)} frame stamps, e.g. {missing[:3]}")
-    return gt.loc[stamps_ns, POSITION].to_numpy(np.float64)
+    return gt.loc[frames.frame_id, POSITION].to_numpy(np.float64)
 
 
 def run(seq: str, data_root: Path, window: int = 0, penalties: tuple[float, ...] = (0.0, 10.0, 100.0),
@@ -61,7 +65,7 @@ def run(seq: str, data_root: Path, window: int = 0, penalties: tuple[float, ...]
     how = scfg.depth_poses if depth_poses == "stage" else depth_poses
     w, _ = window_rows(data_root, seq, window)
     data = load_window(w, data_root)
-    ref = reference_positions(data_root, seq, w.stamp_ns.to_numpy())
+    ref = reference_positions(data_root, seq, w[["frame_id", "stamp_ns"]])
     odo = w[POSITION].to_numpy(np.float64)
     train = data.is_train
     variants = [(f"shift penalty {p:g}", replace(base, pose_shift_penalty=p)) for p in penalties]
@@ -92,7 +96,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--data-root", type=Path, default=Path("data/bench/real_rgbd"))
     p.add_argument("--window", type=int, default=0)
     p.add_argument("--penalties", default="0,10,100", help="comma-separated pose_shift_penalty weights (per m^2)")
-    p.add_argument("--depth-poses", default="stage", choices=["stage", "icp", "scale", "off"],
+    p.add_argument("--depth-poses", default="stage", choices=["stage", *typing.get_args(DepthPoses)],
                    help="initial pose correction (stage = nerf_fit's default)")
     p.add_argument("--seed", type=int, default=0, help="added to the fits' seed (nerf_fit's seed + window)")
     p.add_argument("--threads", type=int, default=2)

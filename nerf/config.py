@@ -79,8 +79,9 @@ class NerfConfig:
     """weight (>= 0, per m^2) of a penalty on how far the pose refinement moves the cameras: the mean over the
     refined frames of |translation correction|^2 in m^2, beside the colour MSE (0 = none). Colour fixes a
     camera's orientation far better than its position when the scene is deep (a 1 cm sideways shift at 2.3 m
-    moves the image like a 0.25 degree turn), so without it positions wander along that ambiguity; a shift the
-    images do call for (odometry drift) costs little beside the colour error it removes."""
+    moves the image like a 0.25 degree turn), so without it positions wander along that ambiguity and the
+    initial (odometry or ICP) positions are kept instead. Lower it only where `pag bench pose_prior` shows
+    colour moving a row's positions nearer its reference poses."""
     refine_poses: bool = True
     """optimise the training poses online from the colour loss (off = keep the initial poses)."""
     val_register_every: int = 100
@@ -146,6 +147,8 @@ class NerfConfig:
             raise ValueError(f"cone_angle must be > 0 (radians), got {self.cone_angle}")
         if not (self.far_m == 0 or self.far_m > self.near_m):
             raise ValueError(f"far_m must be 0 (derived from depth) or > near_m ({self.near_m}), got {self.far_m}")
+        if not self.pose_shift_penalty >= 0:
+            raise ValueError(f"pose_shift_penalty must be >= 0 (per m^2; 0 = none), got {self.pose_shift_penalty}")
         if not self.rays_area_exponent >= 0:
             raise ValueError(f"rays_area_exponent must be >= 0, got {self.rays_area_exponent}")
 

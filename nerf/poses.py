@@ -61,7 +61,7 @@ class PoseCorrection(nn.Module):
         """[K] frame indices -> [K, 4, 4] correction transforms."""
         out = torch.eye(4, device=self.trans.device).repeat(idx.shape[0], 1, 1)
         out[:, :3, :3] = rotation_6d(self.rot6d[idx])
-        out[:, :3, 3] = self.trans[idx] * self.scale_m
+        out[:, :3, 3] = self.shift_m(idx)
         return out
 
     def shift_m(self, idx: Tensor) -> Tensor:

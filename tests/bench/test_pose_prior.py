@@ -16,12 +16,13 @@ def test_reference_positions_by_stamp_and_missing_ones_named(tmp_path):
     gt.mkdir(parents=True)
     pd.DataFrame({"frame_id": [0, 1, 2], "stamp_ns": [30, 10, 20], "tx": [3.0, 1.0, 2.0], "ty": 0.0, "tz": 0.0,
                   "qx": 0.0, "qy": 0.0, "qz": 0.0, "qw": 1.0}).to_parquet(gt / "poses.parquet")
-    got = pose_prior.reference_positions(tmp_path, "r", np.array([10, 20, 30]))
+    frames = pd.DataFrame({"frame_id": [5, 6, 7], "stamp_ns": [10, 20, 30]})   # ingest renumbers frames
+    got = pose_prior.reference_positions(tmp_path, "r", frames)
     assert got[:, 0].tolist() == [1.0, 2.0, 3.0]
     with pytest.raises(ValueError, match="no pose at 1 frame stamps"):
-        pose_prior.reference_positions(tmp_path, "r", np.array([10, 25]))
+        pose_prior.reference_positions(tmp_path, "r", pd.DataFrame({"frame_id": [0, 1], "stamp_ns": [10, 100]}))
     with pytest.raises(FileNotFoundError, match="reference poses"):
-        pose_prior.reference_positions(tmp_path, "other", np.array([10]))
+        pose_prior.reference_positions(tmp_path, "other", frames)
 
 
 @pytest.mark.slow  # three short 640x480 fits: `make test-slow`

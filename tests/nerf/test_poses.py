@@ -41,3 +41,10 @@ def test_shift_is_how_far_the_camera_centre_moves_in_metres():
     assert torch.allclose(p.shift_m(torch.arange(3)).norm(dim=-1), moved)
     assert torch.allclose(moved, torch.tensor([0.02, 0.0, 0.1]))
     assert float(shift_cost(p, torch.tensor([0, 2])).detach()) == pytest.approx((0.02 ** 2 + 0.1 ** 2) / 2)
+
+
+def test_a_negative_shift_penalty_is_refused():
+    from nerf.config import preset
+
+    with pytest.raises(ValueError, match="pose_shift_penalty must be >= 0"):
+        preset("cpu", pose_shift_penalty=-1.0)

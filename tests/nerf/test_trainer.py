@@ -168,15 +168,15 @@ def test_a_large_image_trains_on_more_rays_per_step(window, monkeypatch):
 
 
 def test_shift_penalty_keeps_camera_centres_and_still_turns_the_cameras(window):
+    from nerf.geometry import rotation_angle_deg
+
     cfg = preset("cpu", **{**FAST, "steps": 40, "pose_warmup_steps": 0, "lr_pose": 3e-3})
     free = fit_window(window, replace(cfg, pose_shift_penalty=0.0), render_val=False)
     held = fit_window(window, replace(cfg, pose_shift_penalty=1e4), render_val=False)
 
     def moved(res):
         shift = np.linalg.norm(res.poses_c2w[:, :3, 3] - window.poses_c2w[:, :3, 3], axis=1)
-        rel = np.einsum("nji,njk->nik", window.poses_c2w[:, :3, :3], res.poses_c2w[:, :3, :3])
-        turn = np.degrees(np.arccos(np.clip((np.trace(rel, axis1=1, axis2=2) - 1) / 2, -1, 1)))
-        return shift.mean(), turn.mean()
+        return shift.mean(), rotation_angle_deg(window.poses_c2w[:, :3, :3], res.poses_c2w[:, :3, :3]).mean()
 
     (shift_free, turn_free), (shift_held, turn_held) = moved(free), moved(held)
     assert shift_free > 1e-3                       # without it the centres move (by centimetres at this rate)
