@@ -1,7 +1,7 @@
 """The pose refinement's shift penalty on one window: refined poses against the reference poses, per weight.
 
     pag bench pose_prior [--seq sun3d_office] [--data-root data/bench/real_rgbd] [--window 0]
-                         [--penalties 0,10,100] [--depth-poses STAGE|icp|scale|off] [--seed 0] [--threads 2]
+                         [--penalties 0,1,10] [--depth-poses STAGE|icp|scale|off] [--seed 0] [--threads 2]
 
 Fits the window's colour phase (nerf/fit.py `fit_colour`, nerf_fit's model settings and ICP correction)
 once per `pose_shift_penalty` weight, and once with pose refinement off, all with the same seed, and scores
@@ -11,7 +11,8 @@ The sequence must have been ingested and windowed (`pag windows --seq SEQ`; `pag
 for the shared office row). `--depth-poses off` starts from the odometry, so the colour refinement alone
 must correct its drift: the case where a penalty could hold back a correction the images ask for.
 
-Output `pose_prior.parquet`, one row per variant: variant, pose_shift_penalty, refine_poses, ate_m,
+Output `pose_prior.parquet`, one row per variant: variant, pose_shift_penalty, shift_weight (the weight per m^2
+the fit gave it: the penalty over the window's parallax spread squared), refine_poses, ate_m,
 ate_train_m, ate_val_m, ate_initial_m (the poses the fit started from), ate_odometry_m, shift_train_mm and
 shift_val_mm (mean distance the refinement moved the cameras), train_psnr (dB, last steps), fit_s, seed.
 """
@@ -51,7 +52,7 @@ def reference_positions(data_root: Path, seq: str, frames: pd.DataFrame) -> np.n
     return gt.loc[frames.frame_id, POSITION].to_numpy(np.float64)
 
 
-def run(seq: str, data_root: Path, window: int = 0, penalties: tuple[float, ...] = (0.0, 10.0, 100.0),
+def run(seq: str, data_root: Path, window: int = 0, penalties: tuple[float, ...] = (0.0, 1.0, 10.0),
         depth_poses: str = "stage", threads: int = 2, model: dict | None = None, seed: int = 0) -> pd.DataFrame:
     """Fit window `window` of `seq` (ingested and windowed under data_root) once per penalty and once without
     refinement, all with nerf_fit's seed for the window plus `seed`; one table row per fit. `model`: further
@@ -76,7 +77,8 @@ def run(seq: str, data_root: Path, window: int = 0, penalties: tuple[float, ...]
         colour = fit_colour(data, cfg, how, icp_max_depth_m=scfg.icp_max_depth_m, name=f"window {window}")
         fitted, start = colour.result.poses_c2w[:, :3, 3], colour.data.poses_c2w[:, :3, 3]
         shift = 1e3 * np.linalg.norm(fitted - start, axis=1)
-        rows.append({"variant": name, "pose_shift_penalty": cfg.pose_shift_penalty, "refine_poses": cfg.refine_poses,
+        rows.append({"variant": name, "pose_shift_penalty": cfg.pose_shift_penalty,
+                     "shift_weight": colour.result.shift_weight, "refine_poses": cfg.refine_poses,
                      "ate_m": ate_rmse(fitted, ref), "ate_train_m": ate_rmse(fitted[train], ref[train]),
                      "ate_val_m": ate_rmse(fitted[~train], ref[~train]), "ate_initial_m": ate_rmse(start, ref),
                      "ate_odometry_m": ate_rmse(odo, ref), "shift_train_mm": float(shift[train].mean()),
@@ -84,7 +86,7 @@ def run(seq: str, data_root: Path, window: int = 0, penalties: tuple[float, ...]
                      "train_psnr": colour.result.train_psnr, "fit_s": time.perf_counter() - t0,
                      "seq": seq, "window": window, "depth_poses": how, "seed": cfg.seed})
         r = rows[-1]
-        print(f"{name}: ATE {1e3 * r['ate_m']:.2f} mm (train {1e3 * r['ate_train_m']:.2f}, val "
+        print(f"{name} (weight {r['shift_weight']:.3g} per m^2): ATE {1e3 * r['ate_m']:.2f} mm (train {1e3 * r['ate_train_m']:.2f}, val "
               f"{1e3 * r['ate_val_m']:.2f}; odometry {1e3 * r['ate_odometry_m']:.2f}), moved {r['shift_train_mm']:.1f}"
               f" / {r['shift_val_mm']:.1f} mm, train PSNR {r['train_psnr']:.2f} dB, {r['fit_s']:.0f} s", flush=True)
     return pd.DataFrame(rows)
@@ -95,7 +97,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seq", default="sun3d_office")
     p.add_argument("--data-root", type=Path, default=Path("data/bench/real_rgbd"))
     p.add_argument("--window", type=int, default=0)
-    p.add_argument("--penalties", default="0,10,100", help="comma-separated pose_shift_penalty weights (per m^2)")
+    p.add_argument("--penalties", default="0,1,10",
+                   help="comma-separated pose_shift_penalty weights (per m^2 at a parallax spread of 1/m)")
     p.add_argument("--depth-poses", default="stage", choices=["stage", *typing.get_args(DepthPoses)],
                    help="initial pose correction (stage = nerf_fit's default)")
     p.add_argument("--seed", type=int, default=0, help="added to the fits' seed (nerf_fit's seed + window)")

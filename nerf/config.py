@@ -75,13 +75,14 @@ class NerfConfig:
     the initial poses are far off, lower it when refined poses wander."""
     pose_warmup_steps: int = 200
     """steps (>= 0) before the poses start to move, so the geometry forms first."""
-    pose_shift_penalty: float = 100.0
-    """weight (>= 0, per m^2) of a penalty on how far the pose refinement moves the cameras: the mean over the
-    refined frames of |translation correction|^2 in m^2, beside the colour MSE (0 = none). Colour fixes a
-    camera's orientation far better than its position when the scene is deep (a 1 cm sideways shift at 2.3 m
-    moves the image like a 0.25 degree turn), so without it positions wander along that ambiguity and the
-    initial (odometry or ICP) positions are kept instead. Lower it only where `pag bench pose_prior` shows
-    colour moving a row's positions nearer its reference poses."""
+    pose_shift_penalty: float = 10.0
+    """weight (>= 0, per m^2, 0 = none) of a penalty on how far the pose refinement moves the cameras, for a
+    window whose parallax spread (nerf/window.py parallax_spread: the range of 1 / depth, 1/m) is 1/m; a
+    window is fitted with pose_shift_penalty / spread^2 (per m^2, in window_metrics pose_shift_weight) times the
+    mean over the refined frames of |translation correction|^2 (m^2), beside the colour MSE. Colour tells a
+    sideways shift from a turn only by the parallax between near and far surfaces, so without the penalty
+    positions wander along that ambiguity where the parallax is small (an office: spread 0.28/m, weight 124),
+    while a near row (spread 1.5/m, weight 4) keeps what colour fixes. `pag bench pose_prior` measures it."""
     refine_poses: bool = True
     """optimise the training poses online from the colour loss (off = keep the initial poses)."""
     val_register_every: int = 100
@@ -148,7 +149,7 @@ class NerfConfig:
         if not (self.far_m == 0 or self.far_m > self.near_m):
             raise ValueError(f"far_m must be 0 (derived from depth) or > near_m ({self.near_m}), got {self.far_m}")
         if not self.pose_shift_penalty >= 0:
-            raise ValueError(f"pose_shift_penalty must be >= 0 (per m^2; 0 = none), got {self.pose_shift_penalty}")
+            raise ValueError(f"pose_shift_penalty must be >= 0 (per m^2 at a parallax spread of 1/m; 0 = none), got {self.pose_shift_penalty}")
         if not self.rays_area_exponent >= 0:
             raise ValueError(f"rays_area_exponent must be >= 0, got {self.rays_area_exponent}")
 

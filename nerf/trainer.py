@@ -26,7 +26,7 @@ from nerf.occupancy import OccupancyGrid
 from nerf.pixel_sampling import GradientCDF, draw_pixels, gradient_cdf
 from nerf.poses import PoseCorrection
 from nerf.render import Samples, accumulate, composite_weights, march, pixel_rays, transmittance
-from nerf.window import WindowData, depth_far_m, window_scene
+from nerf.window import WindowData, depth_far_m, parallax_spread, window_scene
 
 
 class NonFiniteLoss(FloatingPointError):
@@ -49,6 +49,8 @@ class FitResult:
     history: list[dict] = field(default_factory=list)
     renders: dict[int, dict] = field(default_factory=dict)
     """window frame index -> render_image() output, for the validation frames."""
+    shift_weight: float = 0.0
+    """weight (per m^2) the fit gave the pose shift penalty (shift_weight())."""
 
 
 def fused_adam(dev: torch.device) -> bool | None:
@@ -63,6 +65,14 @@ def with_far_plane(cfg: NerfConfig, depths: np.ndarray) -> NerfConfig:
     if cfg.far_m > 0:
         return cfg
     return replace(cfg, far_m=max(depth_far_m(depths), 2 * cfg.near_m))
+
+
+def shift_weight(cfg: NerfConfig, depths: np.ndarray) -> float:
+    """Weight (per m^2) of the pose shift penalty for a window with sensor depth [N, H, W] (metres, 0 = none):
+    cfg.pose_shift_penalty / parallax_spread(depths)^2, or cfg.pose_shift_penalty unscaled without valid
+    depth. Example: penalty 10, spread 0.28/m (an office) -> 124; spread 1.5/m (a near row) -> 4.4."""
+    spread = parallax_spread(depths)
+    return cfg.pose_shift_penalty / (spread ** 2 if np.isfinite(spread) else 1.0)
 
 
 def depth_supervised(depths: Tensor, edge_m: float, far_m: float) -> Tensor:
@@ -102,6 +112,7 @@ def fit_window(data: WindowData, cfg: NerfConfig, device: str = "cpu",
     images = torch.from_numpy(np.ascontiguousarray(data.images)).to(dev)                       # uint8
     depths = torch.from_numpy(np.ascontiguousarray(data.depths, dtype=np.float32)).to(dev)
     depth_ok = depth_supervised(depths, cfg.depth_edge_m, cfg.far_m)
+    w_shift = shift_weight(cfg, data.depths) if cfg.refine_poses else 0.0
     k = torch.tensor(data.intrinsics, dtype=torch.float32, device=dev)
     c2w0 = torch.tensor(data.poses_c2w, dtype=torch.float32, device=dev)
     scene = window_scene(data.poses_c2w, data.intrinsics, (w, h), cfg.far_m).to(dev)
@@ -152,8 +163,8 @@ def fit_window(data: WindowData, cfg: NerfConfig, device: str = "cpu",
             m = (~pose_rays) & depth_ok[frames, v, u]
             if m.any():
                 loss = loss + cfg.depth_loss_weight * torch.mean(torch.abs(dpred[m] - dgt[m]))
-        if pose_on and cfg.pose_shift_penalty > 0:
-            loss = loss + cfg.pose_shift_penalty * shift_cost(poses, train_idx)
+        if pose_on and w_shift > 0:
+            loss = loss + w_shift * shift_cost(poses, train_idx)
         if not torch.isfinite(loss):
             raise NonFiniteLoss(f"non-finite loss ({float(loss.detach())}) at step {step}")
         opt.zero_grad(set_to_none=True)
@@ -164,7 +175,7 @@ def fit_window(data: WindowData, cfg: NerfConfig, device: str = "cpu",
             grid.update(lambda p: fld.density(scene.normalise(p)), step_m, cfg.occupancy_threshold)
         if len(val_idx) and cfg.refine_poses and step >= cfg.pose_warmup_steps and step % cfg.val_register_every == 0:
             register(model, poses, val_opt, c2w0, k, images, val_idx, cfg.val_register_steps, g,
-                     edge_cdf=val_cdf, edge_share=cfg.val_register_edge_share)
+                     edge_cdf=val_cdf, edge_share=cfg.val_register_edge_share, shift_weight=w_shift)
         if step % 50 == 0 or step == cfg.steps - 1:
             rec = {"step": step, "loss": float(loss.detach()),
                    "psnr": psnr_from_mse(max(float(loss_c.detach()), 1e-10)),
@@ -174,14 +185,15 @@ def fit_window(data: WindowData, cfg: NerfConfig, device: str = "cpu",
                 progress(step + 1, cfg.steps, {"psnr": rec["psnr"]})
     if len(val_idx) and cfg.refine_poses:
         register(model, poses, val_opt, c2w0, k, images, val_idx, cfg.val_register_final_steps, g,
-                 anneal=cfg.val_register_anneal, edge_cdf=val_cdf, edge_share=cfg.val_register_edge_share)
+                 anneal=cfg.val_register_anneal, edge_cdf=val_cdf, edge_share=cfg.val_register_edge_share,
+                 shift_weight=w_shift)
     fit_s = time.perf_counter() - t0
     with torch.no_grad():
         final = poses.apply(c2w0, torch.arange(n, device=dev)) if cfg.refine_poses else c2w0
     model.poses_c2w = final.detach().clone()
     train_psnr = float(np.mean([h_["psnr"] for h_ in history[-3:]]))
     res = FitResult(model, final.cpu().numpy().astype(np.float64), cfg.steps, fit_s, {}, train_psnr,
-                    float("nan"), float("nan"), param_count(fld), history, {})
+                    float("nan"), float("nan"), param_count(fld), history, {}, w_shift)
     if render_val:
         validate(res, data, model.render_image)
     return res
@@ -231,10 +243,12 @@ def visible_samples(model: NerfModel, o: Tensor, d: Tensor, s: Samples, min_tran
 
 def register(model: NerfModel, poses: PoseCorrection, opt: torch.optim.Optimizer, c2w0: Tensor, k: Tensor,
              images: Tensor, val_idx: Tensor, steps: int, g: torch.Generator, rays: int = 1024,
-             anneal: float = 1.0, edge_cdf: GradientCDF | None = None, edge_share: float = 0.0) -> None:
-    """Optimise only the validation poses against the frozen model (colour loss). The learning rates fall
-    exponentially to `anneal` times their value over the steps (and are restored after); an `edge_share` of
-    the rays is drawn from `edge_cdf` (gradient_cdf of images[val_idx]), the rest uniformly."""
+             anneal: float = 1.0, edge_cdf: GradientCDF | None = None, edge_share: float = 0.0,
+             shift_weight: float = 0.0) -> None:
+    """Optimise only the validation poses against the frozen model (colour loss, plus shift_weight (per m^2)
+    times shift_cost). The learning rates fall exponentially to `anneal` times their value over the steps
+    (and are restored after); an `edge_share` of the rays is drawn from `edge_cdf` (gradient_cdf of
+    images[val_idx]), the rest uniformly."""
     fld = model.field
     req = [p.requires_grad for p in fld.parameters()]
     for p in fld.parameters():
@@ -255,8 +269,8 @@ def register(model: NerfModel, poses: PoseCorrection, opt: torch.optim.Optimizer
             wts, _ = composite_weights(sigma, s.delta, s.ray_index, s.n_rays)
             rgb = accumulate(col, wts, s.ray_index, s.n_rays)
             loss = torch.mean((rgb - images[frames, v, u].float() / 255.0) ** 2)
-            if model.cfg.pose_shift_penalty > 0:
-                loss = loss + model.cfg.pose_shift_penalty * shift_cost(poses, val_idx)
+            if shift_weight > 0:
+                loss = loss + shift_weight * shift_cost(poses, val_idx)
             opt.zero_grad(set_to_none=True)
             if torch.isfinite(loss):
                 loss.backward()

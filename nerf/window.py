@@ -92,6 +92,26 @@ def depth_far_m(depths: np.ndarray) -> float:
     return round_up(FAR_MARGIN * float(np.percentile(v, FAR_PERCENTILE)))
 
 
+PARALLAX_PERCENTILES = (10.0, 90.0)
+"""The parallax spread of a window: the range of inverse valid depth between these percentiles (1/m)."""
+MIN_PARALLAX_PER_M = 0.01
+"""Floor of the parallax spread (1/m): a window that sees one flat wall at one depth has none."""
+
+
+def parallax_spread(depths: np.ndarray) -> float:
+    """How differently a sideways camera shift moves a window's near and far surfaces in its images: the
+    PARALLAX_PERCENTILES range of 1 / depth over the valid depth of [N, H, W] (metres, 0 = none), in 1/m,
+    floored at MIN_PARALLAX_PER_M; NaN without valid depth. A shift t (m) moves a surface at depth z by
+    t / z radians; a turn moves every surface alike, so colour tells a shift from a turn only by this
+    difference. Example: a glasshouse row (plants at 0.5-0.6 m, far row at 2-3 m) 1.5; an office (walls
+    at 1.8-3.6 m) 0.28."""
+    v = valid_depth_sample(depths)
+    if v.size == 0:
+        return float("nan")
+    lo, hi = np.percentile(1.0 / v, PARALLAX_PERCENTILES)
+    return max(float(hi - lo), MIN_PARALLAX_PER_M)
+
+
 def window_scene(poses: np.ndarray, k: np.ndarray, wh: tuple[int, int], far_m: float) -> Scene:
     """Bounds = the box around every camera centre and its frustum corners at `far_m`."""
     w, h = wh

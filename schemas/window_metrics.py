@@ -42,6 +42,9 @@ SCHEMA = table_schema(
         "derived from the window's depth); null with depth_poses 'off' or a failed window", nullable=True),
     col("far_m", pa.float64(), "metres: far plane of the window's field (nerf_fit.model.far_m, or derived from its "
         "depth); null for a failed window", nullable=True),
+    col("pose_shift_weight", pa.float64(), "weight of the pose refinement's shift penalty: "
+        "nerf_fit.model.pose_shift_penalty / the window's parallax spread^2 (nerf/trainer.py shift_weight; 0 with "
+        "refinement off); null for a failed window", "1/m^2", nullable=True),
     col("peak_rss_mb", pa.float64(), "peak resident memory of the worker process over the window's fit, "
         "rendering and writing (the kernel's high-water mark; null where the system cannot reset it or the "
         "window failed)", "MiB", nullable=True),

@@ -155,7 +155,7 @@ def fit_one(payload: dict) -> dict:
                "panoptic_params": pan.params if pan else 0,
                "panoptic_instances": bool(pan is not None and pan.cfg.instances), "n_slots": pan.n_slots if pan else 0,
                "id_window_width": pan.slot_window.width if pan and pan.slot_window else 0,
-               **fit.depth_info, "far_m": float(res.model.cfg.far_m),
+               **fit.depth_info, "far_m": float(res.model.cfg.far_m), "pose_shift_weight": res.shift_weight,
                "checkpoint": f"window_{wid:03d}/checkpoint.pt"}
     result = {"poses": poses.to_dict("list"), "metrics": metrics, "renders": render_rows}
     if resume:
@@ -273,7 +273,7 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
                                 "panoptic_instances": False, "n_slots": 0,
                                 "id_window_width": 0, "depth_poses": cfg.depth_poses, "odometry_scale": np.nan,
                                 "depth_pose_votes": 0, "depth_pose_note": "", "icp_max_depth_m": np.nan,
-                                "far_m": np.nan, "peak_rss_mb": np.nan})
+                                "far_m": np.nan, "pose_shift_weight": np.nan, "peak_rss_mb": np.nan})
             continue
         m = dict(o.result["metrics"])
         m["checkpoint_path"] = ctx.relpath("nerf", m.pop("checkpoint"))

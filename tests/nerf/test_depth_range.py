@@ -10,8 +10,8 @@ from nerf.config import NerfConfig, preset
 from nerf.depth_poses import depth_initial_poses, icp_depth_limit_m
 from nerf.model import init_occupancy
 from nerf.occupancy import OccupancyGrid
-from nerf.trainer import with_far_plane
-from nerf.window import FALLBACK_FAR_M, depth_far_m
+from nerf.trainer import shift_weight, with_far_plane
+from nerf.window import FALLBACK_FAR_M, MIN_PARALLAX_PER_M, depth_far_m, parallax_spread
 
 
 def depth_frames(near_m: float, far_m: float, n: int = 4, shape=(60, 80), seed: int = 0) -> np.ndarray:
@@ -34,6 +34,39 @@ def test_far_plane_covers_the_depth_and_is_stable_across_windows():
     assert with_far_plane(preset("cpu", far_m=2.0), room).far_m == 2.0
     with pytest.raises(ValueError, match="far_m"):
         NerfConfig(far_m=0.1)                       # nearer than the near plane
+
+
+def two_planes(near_m: float, far_m: float, near_share: float, shape=(40, 50)) -> np.ndarray:
+    """[2, H, W] depth: the first near_share of each image's rows at near_m, the rest at far_m, one pixel in
+    ten missing."""
+    d = np.full((2, *shape), far_m, np.float32)
+    d[:, : int(round(near_share * shape[0]))] = near_m
+    d[:, ::10, ::10] = 0
+    return d
+
+
+def test_parallax_spread_is_the_range_of_inverse_depth():
+    # plants at 0.5 m in front of a far row at 2 m: 1/0.5 - 1/2 = 1.5 per metre, whatever the depths' shares
+    assert parallax_spread(two_planes(0.5, 2.0, 0.5)) == pytest.approx(1.5)
+    assert parallax_spread(two_planes(0.5, 2.0, 0.3)) == pytest.approx(1.5)
+    # an office whose walls are 2-4 m away: 0.25 per metre; the same scene twice as far: half the spread
+    assert parallax_spread(two_planes(2.0, 4.0, 0.5)) == pytest.approx(0.25)
+    assert parallax_spread(two_planes(4.0, 8.0, 0.5)) == pytest.approx(0.125)
+    # a few flying pixels (under the 10th percentile) do not set it
+    d = two_planes(2.0, 4.0, 0.5)
+    d[:, 0, :3] = 0.05
+    assert parallax_spread(d) == pytest.approx(0.25)
+    # one flat wall: no parallax, floored; no valid depth: unknown
+    assert parallax_spread(np.full((2, 8, 8), 3.0, np.float32)) == MIN_PARALLAX_PER_M
+    assert np.isnan(parallax_spread(np.zeros((2, 8, 8), np.float32)))
+
+
+def test_shift_weight_grows_as_the_parallax_shrinks():
+    cfg = preset("cpu", pose_shift_penalty=10.0)
+    assert shift_weight(cfg, two_planes(0.5, 2.0, 0.5)) == pytest.approx(10 / 1.5 ** 2)
+    assert shift_weight(cfg, two_planes(2.0, 4.0, 0.5)) == pytest.approx(10 / 0.25 ** 2)
+    assert shift_weight(cfg, np.zeros((2, 8, 8), np.float32)) == 10.0      # no depth: the weight as set
+    assert shift_weight(preset("cpu", pose_shift_penalty=0.0), two_planes(2.0, 4.0, 0.5)) == 0.0
 
 
 def test_icp_depth_limit_follows_the_nearest_surfaces():

@@ -184,3 +184,7 @@ def test_shift_penalty_keeps_camera_centres_and_still_turns_the_cameras(window):
     # orientations are still refined (a fit without refinement turns no camera at all); held positions leave
     # them less to correct, so they turn less than when the centres move too
     assert turn_held > 0.1 * turn_free and turn_held > 0.05
+    # the fit weighs the shifts by the window's parallax (shift_weight) and says so
+    from nerf.trainer import shift_weight
+    assert held.shift_weight == pytest.approx(shift_weight(replace(cfg, pose_shift_penalty=1e4), window.depths))
+    assert held.shift_weight > 0 and free.shift_weight == 0.0

@@ -57,9 +57,10 @@ def test_keep_freed_memory_stops_page_faults_on_every_large_allocation():
     faults = {mode: int(subprocess.run([sys.executable, "-c", FAULTS_SCRIPT, mode], env=env, check=True,
                                        capture_output=True, text=True, cwd=ROOT).stdout)
               for mode in ("plain", "keep")}
-    pages = 20 * (2 << 20) // 4096
-    assert faults["plain"] > pages // 2
-    assert faults["keep"] < pages // 10
+    # plain: every allocation faults its pages in again (20 x 512 faults with 4 KiB pages; fewer where the
+    # kernel backs anonymous memory with larger folios, e.g. 20 x 128 with 16 KiB ones); keep: reused, ~none
+    assert faults["plain"] >= 20
+    assert faults["keep"] < faults["plain"] // 10
 
 
 def name_of_worker(_):
