@@ -86,8 +86,8 @@ def run(seq: str, data_root: Path, window: int = 0, penalties: tuple[float, ...]
                      "train_psnr": colour.result.train_psnr, "fit_s": time.perf_counter() - t0,
                      "seq": seq, "window": window, "depth_poses": how, "seed": cfg.seed})
         r = rows[-1]
-        print(f"{name} (weight {r['shift_weight']:.3g} per m^2): ATE {1e3 * r['ate_m']:.2f} mm (train {1e3 * r['ate_train_m']:.2f}, val "
-              f"{1e3 * r['ate_val_m']:.2f}; odometry {1e3 * r['ate_odometry_m']:.2f}), moved {r['shift_train_mm']:.1f}"
+        print(f"{name} (weight {r['shift_weight']:.3g} per m^2): ATE {1e3 * r['ate_m']:.2f} mm (train "
+              f"{1e3 * r['ate_train_m']:.2f}, val {1e3 * r['ate_val_m']:.2f}; odometry {1e3 * r['ate_odometry_m']:.2f}), moved {r['shift_train_mm']:.1f}"
               f" / {r['shift_val_mm']:.1f} mm, train PSNR {r['train_psnr']:.2f} dB, {r['fit_s']:.0f} s", flush=True)
     return pd.DataFrame(rows)
 
@@ -107,8 +107,8 @@ def main(argv: list[str] | None = None) -> int:
     a = p.parse_args(argv)
     penalties = tuple(float(x) for x in a.penalties.split(",") if x.strip())
     df = run(a.seq, a.data_root, a.window, penalties, a.depth_poses, a.threads, seed=a.seed)
-    name = "pose_prior" + ("" if a.depth_poses == "stage" else f"_{a.depth_poses}") + (f"_seed{a.seed}" if a.seed else "")
-    name += ".parquet"
+    how = "" if a.depth_poses == "stage" else f"_{a.depth_poses}"
+    name = f"pose_prior{how}{f'_seed{a.seed}' if a.seed else ''}.parquet"
     write_parquet(df, a.out / name)
     print(f"wrote {a.out / name}")
     return 0

@@ -149,7 +149,8 @@ class NerfConfig:
         if not (self.far_m == 0 or self.far_m > self.near_m):
             raise ValueError(f"far_m must be 0 (derived from depth) or > near_m ({self.near_m}), got {self.far_m}")
         if not self.pose_shift_penalty >= 0:
-            raise ValueError(f"pose_shift_penalty must be >= 0 (per m^2 at a parallax spread of 1/m; 0 = none), got {self.pose_shift_penalty}")
+            raise ValueError(f"pose_shift_penalty must be >= 0 (per m^2 at a parallax spread of 1/m; 0 = none), "
+                             f"got {self.pose_shift_penalty}")
         if not self.rays_area_exponent >= 0:
             raise ValueError(f"rays_area_exponent must be >= 0, got {self.rays_area_exponent}")
 
