@@ -133,6 +133,7 @@ def depth_agreement(data_root: Path, seq: str, gap: int = AGREEMENT_GAP) -> dict
     matched by stamp) poses of each window's frames, with the window's own ICP depth limit and reach."""
     from nerf.depth_poses import MAX_DIST_M, REFERENCE_DEPTH_M, VOXEL_M, depth_cloud, depth_disagreement
     from nerf.geometry import pose_matrix
+    from rowmap.ground_truth import gt_poses_by_frame
     from rowmap.window_data import load_window
 
     data_root = Path(data_root)
@@ -155,10 +156,9 @@ def depth_agreement(data_root: Path, seq: str, gap: int = AGREEMENT_GAP) -> dict
         clouds = [depth_cloud(d, k, limit, VOXEL_M * grow) for d, k in zip(data.depths, data.intrinsics)]
         sets = {"odometry": pose_matrix(fr[cols].to_numpy()), "refined": pose_matrix(wp[cols].to_numpy())}
         if gt is not None and "stamp_ns" in gt:
-            g = gt.sort_values("stamp_ns")
-            idx = np.clip(np.searchsorted(g.stamp_ns.to_numpy(), fr.stamp_ns.to_numpy()), 0, len(g) - 1)
-            if np.all(g.stamp_ns.to_numpy()[idx] == fr.stamp_ns.to_numpy()):
-                sets["reference"] = pose_matrix(g[cols].to_numpy()[idx])
+            ref = gt_poses_by_frame(gt, fr)  # matched as evaluate matches them; used only if every frame has one
+            if len(ref) == len(fr):
+                sets["reference"] = pose_matrix(ref.set_index("frame_id").loc[fr.frame_id, cols].to_numpy())
         for name, c2w in sets.items():
             out[name].append(1e3 * depth_disagreement(clouds, c2w, MAX_DIST_M * grow, gap, stride=1))
     return {f"depth_disagreement_{k}_mm": float(np.mean(v)) if v else float("nan") for k, v in out.items()}
