@@ -82,7 +82,7 @@ def downscale(data: WindowData, labels: WindowLabels, gts: list, scale: float
     small = WindowData(np.stack([cv2.resize(im, size, interpolation=cv2.INTER_AREA) for im in data.images]),
                        np.stack([near(d) for d in data.depths]), k, data.poses_c2w, data.is_train, data.frame_ids)
     lab = WindowLabels(np.stack([near(a) for a in labels.semantic]),
-                       np.stack([near(a) for a in labels.instance]), np.stack([near(a) for a in labels.confidence]))
+                       np.stack([near(a) for a in labels.instance]), labels.scores)
     return small, lab, [(near(gs), near(gi)) for gs, gi in gts]
 
 

@@ -68,8 +68,7 @@ def _render_modes(model, data, repeats: int) -> dict[str, dict[str, float]]:
 def _without_things(labels: WindowLabels) -> WindowLabels:
     """The detector input with every fruit detection gone (its pixels become plant, as a miss looks)."""
     thing = np.isin(labels.semantic, THING_IDS)
-    return WindowLabels(np.where(thing, 1, labels.semantic).astype(np.uint8), np.zeros_like(labels.instance),
-                        np.where(thing, 1.0, labels.confidence).astype(np.float32))
+    return WindowLabels(np.where(thing, 1, labels.semantic).astype(np.uint8), np.zeros_like(labels.instance))
 
 
 def _manifest_rerun() -> tuple[float, float]:
@@ -120,10 +119,9 @@ def run(seq: str = "synth_row", window: int = 0, steps: int = 300, frames: int =
     rows.append({"skip": "window without thing detections (semantic-only phase)", "measure": "panoptic phase s",
                  "with_skip": median(t_skip), "without_skip": median(t_full)})
     # every other training frame without its fruit detections, so that frames without fruit occur
-    half = WindowLabels(labels.semantic.copy(), labels.instance.copy(), labels.confidence.copy())
+    half = WindowLabels(labels.semantic.copy(), labels.instance.copy(), labels.scores)
     drop = np.flatnonzero(full.is_train)[::2]
-    half.semantic[drop], half.instance[drop], half.confidence[drop] = (bare.semantic[drop], bare.instance[drop],
-                                                                       bare.confidence[drop])
+    half.semantic[drop], half.instance[drop] = bare.semantic[drop], bare.instance[drop]  # (stuff scores 1)
     ph = fit_panoptic(model, half, full.is_train, full.depths, pcfg)
     per_frame = ph.assign_s / max(ph.frames_assigned, 1)
     rows.append({"skip": "frames without fruit (no assignment)", "measure": "assignment s in the panoptic phase",

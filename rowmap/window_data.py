@@ -28,37 +28,42 @@ def load_window(frames: pd.DataFrame, data_root: Path):
 
 def load_labels(frames: pd.DataFrame, dets: pd.DataFrame | None, data_root: Path):
     """The detector's panoptic input of a window's frames (nerf/panoptic/labels.WindowLabels): segments the
-    depth filter dropped become void, thing pixels carry their segment's score, stuff pixels 1."""
+    depth filter dropped become void, thing segments carry their score, stuff 1."""
     from nerf.panoptic.labels import WindowLabels
 
     h, w = int(frames["height"].iloc[0]), int(frames["width"].iloc[0])
     n = len(frames)
     # filled frame by frame: lists of frames stacked at the end would hold the window's labels twice
-    sems, insts, confs = np.empty((n, h, w), np.uint8), np.empty((n, h, w), np.int32), np.empty((n, h, w), np.float32)
+    sems, insts = np.empty((n, h, w), np.uint8), np.empty((n, h, w), np.int16)
+    scores: list[np.ndarray] = []
     for j, (fid, sp, ip) in enumerate(zip(frames["frame_id"], frames["det_semantic_path"], frames["det_instance_path"])):
         if not isinstance(sp, str) or not isinstance(ip, str):  # no detector output for this frame: all void
-            sems[j], insts[j], confs[j] = VOID, 0, 0.0
+            sems[j], insts[j] = VOID, 0
+            scores.append(np.ones(1, np.float32))
             continue
         sem = read_label(data_root / sp, "detector semantic").astype(np.uint8)
         inst = read_label(data_root / ip, "detector instance")
         if sem.shape != (h, w) or inst.shape != (h, w):
             raise ValueError(f"frame {fid}: detector PNGs {sp} / {ip} are {sem.shape} / {inst.shape}, "
                              f"the images are {(h, w)}")
-        conf = np.where(sem == VOID, 0.0, 1.0).astype(np.float32)
-        if dets is not None:
-            fd = dets[dets.frame_id == fid]
-            lut_keep = np.ones(int(max(inst.max(), fd.segment_id.max() if len(fd) else 0)) + 1, bool)
-            lut_score = np.ones(len(lut_keep), np.float32)
-            lut_keep[fd.segment_id.to_numpy()] = fd.kept.to_numpy()
-            lut_score[fd.segment_id.to_numpy()] = fd.score.to_numpy()
-            on = inst > 0
-            conf[on] = lut_score[inst[on]]
-            drop = on & ~lut_keep[inst]
+        fd = dets[dets.frame_id == fid] if dets is not None else None
+        score = np.ones(int(max(inst.max(), fd.segment_id.max() if fd is not None and len(fd) else 0)) + 1,
+                        np.float32)
+        if fd is not None:
+            keep = np.ones(len(score), bool)
+            keep[fd.segment_id.to_numpy()] = fd.kept.to_numpy()
+            score[fd.segment_id.to_numpy()] = fd.score.to_numpy()
+            drop = (inst > 0) & ~keep[inst]
             sem[drop] = VOID
             inst[drop] = 0
-            conf[drop] = 0.0
-        sems[j], insts[j], confs[j] = sem, inst, conf
-    return WindowLabels(sems, insts, confs)
+        if len(score) > np.iinfo(insts.dtype).max:  # ids past int16's range (a 16-bit PNG's upper half)
+            insts = insts.astype(np.int32)
+        sems[j], insts[j] = sem, inst
+        scores.append(score)
+    table = np.ones((n, max(len(s) for s in scores)), np.float32)
+    for j, s in enumerate(scores):
+        table[j, :len(s)] = s
+    return WindowLabels(sems, insts, table)
 
 
 def initial_poses(w: pd.DataFrame, wid: int, colmap: pd.DataFrame | None, source: str) -> pd.DataFrame:

@@ -102,7 +102,6 @@ def fit_panoptic(model: NerfModel, labels: WindowLabels, is_train: np.ndarray, d
     memory = SlotMemory(n_slots)
     sem_t = torch.from_numpy(labels.semantic)
     inst_t = torch.from_numpy(labels.instance)
-    conf_t = torch.from_numpy(labels.confidence)
     for step in range(cfg.steps):
         frames = rng.choice(train, size=min(cfg.frames_per_step, len(train)), replace=False)
         draws = [draw_label_pixels(labels.semantic[i] != VOID, things_all[i], cfg.rays_per_frame,
@@ -118,7 +117,7 @@ def fit_panoptic(model: NerfModel, labels: WindowLabels, is_train: np.ndarray, d
         p_sem, p_inst = ray_probs(pfield, ks)
         sem = sem_t[fi, v, u].to(dev).long()
         inst = inst_t[fi, v, u].to(dev).long()
-        conf = conf_t[fi, v, u].to(dev)
+        conf = torch.from_numpy(labels.confidence_at(fi.numpy(), v.numpy(), u.numpy())).to(dev)
         is_thing = torch.zeros_like(sem, dtype=torch.bool)
         for c in cfg.thing_classes:
             is_thing |= sem == c

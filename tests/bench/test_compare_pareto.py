@@ -40,7 +40,7 @@ def test_pareto_image_scale_halves_images_labels_truth_and_intrinsics():
     sem[0, :, 4:] = 2
     data = WindowData(img, np.full((1, 4, 6), 0.5, np.float32), np.array([[10.0, 10.0, 3.0, 2.0]]),
                       np.eye(4)[None], np.array([True]), np.array([7]))
-    labels = WindowLabels(sem, (sem > 0).astype(np.int32), np.ones((1, 4, 6), np.float32))
+    labels = WindowLabels(sem, (sem > 0).astype(np.int32))
     d, lab, gts = downscale(data, labels, [(sem[0], sem[0].astype(np.int32))], 0.5)
     assert d.images.shape == (1, 2, 3, 3) and (d.images[0, :, 0] == 200).all() and (d.images[0, :, 1:] == 0).all()
     np.testing.assert_allclose(d.intrinsics, [[5.0, 5.0, 1.5, 1.0]])

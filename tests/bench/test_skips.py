@@ -15,7 +15,7 @@ from nerf.trainer import fit_window  # noqa: E402
 
 def test_without_things_turns_every_detection_into_a_miss():
     sem = np.array([[[0, 1, 2, 4, 255]]], np.uint8)
-    lab = WindowLabels(sem, np.array([[[0, 0, 1, 2, 0]]], np.int32), np.array([[[1, 1, 0.8, 0.6, 0]]], np.float32))
+    lab = WindowLabels(sem, np.array([[[0, 0, 1, 2, 0]]], np.int32), np.array([[1, 0.8, 0.6]], np.float32))
     bare = _without_things(lab)
     assert bare.semantic.tolist() == [[[0, 1, 1, 1, 255]]]
     assert (bare.instance == 0).all() and bare.confidence.tolist() == [[[1, 1, 1, 1, 0]]]

@@ -68,7 +68,7 @@ def test_mlp_baseline_trains_and_renders_finite(mlp_fit):
 
 def test_semantic_only_variant_learns_classes_and_has_no_instances(mlp_fit):
     data, sem, inst, res = mlp_fit
-    labels = WindowLabels(sem.astype(np.uint8), inst, np.ones(sem.shape, np.float32))
+    labels = WindowLabels(sem.astype(np.uint8), inst)
     cfg = replace(PAN, **SEMANTIC_ONLY)
     pres = fit_panoptic(res.model, labels, data.is_train, data.depths, replace(cfg, steps=100))
     assert pres.assignments == 0 and pres.slot_window is None
@@ -87,7 +87,7 @@ def test_semantic_only_variant_learns_classes_and_has_no_instances(mlp_fit):
 
 def test_mlp_field_refuses_a_delta_grid(mlp_fit):
     data, sem, inst, res = mlp_fit
-    labels = WindowLabels(sem.astype(np.uint8), inst, np.ones(sem.shape, np.float32))
+    labels = WindowLabels(sem.astype(np.uint8), inst)
     with pytest.raises(ValueError, match="shared"):
         fit_panoptic(res.model, labels, data.is_train, data.depths, replace(PAN, grid_mode="delta"))
 
@@ -95,7 +95,7 @@ def test_mlp_field_refuses_a_delta_grid(mlp_fit):
 def test_panoptic_lifting_like_config_trains_instances_on_the_shared_grid(labelled_window):
     data, sem, inst = labelled_window
     res = fit_window(data, preset("cpu", n_levels=6, log2_capacity=12, **FAST))
-    labels = WindowLabels(sem.astype(np.uint8), inst, np.ones(sem.shape, np.float32))
+    labels = WindowLabels(sem.astype(np.uint8), inst)
     before = res.model.field.grid.table.detach().clone()
     pres = fit_panoptic(res.model, labels, data.is_train, data.depths, replace(PAN, **PANOPTIC_LIFTING_LIKE))
     assert pres.field.grid is None and pres.slot_window is None and pres.assignments > 0

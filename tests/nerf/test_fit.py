@@ -18,7 +18,7 @@ PANOPTIC = PanopticConfig(steps=4, rays_per_frame=32, frames_per_step=2)
 @pytest.fixture(scope="module")
 def window_and_labels(labelled_window):
     data, sem, inst = labelled_window
-    return data, WindowLabels(sem, inst, np.ones(sem.shape, np.float32))
+    return data, WindowLabels(sem, inst)
 
 
 def test_labels_are_loaded_after_the_colour_phase_and_every_validation_frame_is_rendered(window_and_labels):
@@ -109,7 +109,7 @@ def test_a_failing_phase_names_the_window(window_and_labels, monkeypatch):
     data, labels = window_and_labels
     cfg = preset("cpu", **COLOUR)
     colour = fit_colour(data, cfg)
-    small = WindowLabels(labels.semantic[:, :12], labels.instance[:, :12], labels.confidence[:, :12])
+    small = WindowLabels(labels.semantic[:, :12], labels.instance[:, :12], labels.scores)
     with pytest.raises(RuntimeError, match=r"window 7 \(panoptic phase\): labels are 40x12"):
         fit_panoptic_window(data, small, cfg, PANOPTIC, colour=colour, name="window 7")
 

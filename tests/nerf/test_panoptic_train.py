@@ -30,7 +30,7 @@ def detector_like(sem: np.ndarray, inst: np.ndarray, seed: int = 0) -> WindowLab
         new = rng.permutation(len(ids)) + 1
         for a, b in zip(ids, new):
             out[i][inst[i] == a] = b
-    return WindowLabels(sem.astype(np.uint8), out, np.ones(sem.shape, np.float32))
+    return WindowLabels(sem.astype(np.uint8), out)
 
 
 @pytest.fixture(scope="module")
@@ -101,7 +101,7 @@ def test_chunked_render_labels_equal_the_whole_image_distributions_labelled(fitt
 
 def test_all_void_labels_train_nothing_and_still_render(fitted):
     data, sem, _, model = fitted
-    void = WindowLabels(np.full(sem.shape, 255, np.uint8), np.zeros(sem.shape, np.int32), np.zeros(sem.shape, np.float32))
+    void = WindowLabels(np.full(sem.shape, 255, np.uint8), np.zeros(sem.shape, np.int32))
     pres = fit_panoptic(model, void, data.is_train, data.depths, PanopticConfig(steps=5))
     assert pres.steps == 0 and pres.assignments == 0
     r = render_panoptic(model, pres, 0)
@@ -111,7 +111,7 @@ def test_all_void_labels_train_nothing_and_still_render(fitted):
 def test_window_without_fruit_detections_skips_the_instance_part(fitted):
     data, sem, inst, model = fitted
     plant = np.where(np.isin(sem, [2, 3, 4]), 1, sem).astype(np.uint8)   # the detector saw no fruit at all
-    labels = WindowLabels(plant, np.zeros_like(inst), np.ones(sem.shape, np.float32))
+    labels = WindowLabels(plant, np.zeros_like(inst))
     cfg = PanopticConfig(steps=40, stuff_only_steps=10, frames_per_step=2, rays_per_frame=64)
     pres = fit_panoptic(model, labels, data.is_train, data.depths, cfg)
     assert pres.instances_skipped and pres.steps == 10 and pres.assignments == 0 and not pres.cfg.instances
@@ -121,20 +121,31 @@ def test_window_without_fruit_detections_skips_the_instance_part(fitted):
     assert (r["instance"] == 0).all()
 
 
-def test_nan_confidence_is_treated_as_zero():
-    lab = WindowLabels(np.zeros((1, 2, 2), np.uint8), np.zeros((1, 2, 2), np.int32),
-                       np.array([[[np.nan, 1.0], [np.inf, -1.0]]], np.float32))
-    assert np.array_equal(lab.confidence, np.array([[[0.0, 1.0], [1.0, 0.0]]], np.float32))
+def test_confidence_is_the_segment_score_one_for_stuff_zero_for_void():
+    sem = np.array([[[2, 2, 1], [255, 1, 2]], [[1, 1, 1], [2, 255, 2]]], np.uint8)
+    inst = np.array([[[1, 1, 0], [2, 0, 3]], [[0, 0, 0], [1, 0, 1]]], np.int16)
+    scores = np.array([[1.0, 0.7, 0.4, 0.9], [1.0, 0.6, 1.0, 1.0]], np.float32)
+    lab = WindowLabels(sem, inst, scores)
+    want = np.array([[[0.7, 0.7, 1.0], [0.0, 1.0, 0.9]], [[1.0, 1.0, 1.0], [0.6, 0.0, 0.6]]], np.float32)
+    assert np.array_equal(lab.confidence, want)
+    f, v, u = np.array([0, 1, 0, 1]), np.array([1, 1, 0, 0]), np.array([2, 0, 0, 2])
+    assert np.array_equal(lab.confidence_at(f, v, u), want[f, v, u])
+    assert np.array_equal(lab.take(np.array([1])).confidence, want[1:])
+    assert np.array_equal(WindowLabels(sem, inst).confidence, (sem != 255).astype(np.float32))  # no scores: 1
 
 
-def test_confidence_is_copied_only_to_be_cleaned():
-    given = np.array([[[np.nan, 0.5], [2.0, 0.0]]], np.float32)
-    lab = WindowLabels(np.zeros((1, 2, 2), np.uint8), np.zeros((1, 2, 2), np.int32), given)
-    assert np.isnan(given[0, 0, 0]) and given[0, 1, 0] == 2.0                     # the caller's array is kept
-    clean = np.array([[[0.25, 0.5], [1.0, 0.0]]], np.float32)
-    assert WindowLabels(lab.semantic, lab.instance, clean).confidence is clean    # nothing to clean: not copied
-    as_double = WindowLabels(lab.semantic, lab.instance, clean.astype(np.float64)).confidence
-    assert as_double.dtype == np.float32 and np.array_equal(as_double, clean)
+def test_nan_scores_count_as_zero_and_the_callers_table_is_kept():
+    given = np.array([[np.nan, np.nan, 1.0, np.inf, -1.0, 2.0]], np.float32)
+    lab = WindowLabels(np.zeros((1, 1, 5), np.uint8), np.arange(1, 6, dtype=np.int16)[None, None], given)
+    assert np.array_equal(lab.confidence, np.array([[[0.0, 1.0, 1.0, 0.0, 1.0]]], np.float32))
+    assert np.isnan(given[0, 1]) and given[0, 5] == 2.0
+
+
+def test_labels_need_a_score_for_every_segment_id():
+    with pytest.raises(ValueError, match="a score for every segment id"):
+        WindowLabels(np.zeros((1, 1, 3), np.uint8), np.array([[[0, 1, 4]]], np.int16), np.ones((1, 4), np.float32))
+    with pytest.raises(ValueError, match=">= 0"):
+        WindowLabels(np.zeros((1, 1, 2), np.uint8), np.array([[[0, -1]]], np.int16))
 
 
 def test_grow_threshold_outside_0_1_is_a_clear_error():
