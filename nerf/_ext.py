@@ -89,3 +89,10 @@ def load_permuto_ext(device_type: str = "cpu") -> ModuleType | None:
         mod = None
     _CACHE[device_type] = mod
     return mod
+
+
+def release_cached() -> int:
+    """Free what the loaded CPU kernels keep for reuse (the output pool's blocks, this thread's scratch);
+    returns the bytes freed (0 when the kernels are not loaded)."""
+    mod = _CACHE.get("cpu")
+    return int(mod.release_cached()) if mod is not None else 0

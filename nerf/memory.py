@@ -5,6 +5,7 @@ import ctypes
 import ctypes.util
 import functools
 import gc
+import sys
 
 
 @functools.cache
@@ -17,11 +18,16 @@ def _malloc_trim():
 
 
 def release_freed() -> bool:
-    """Collect garbage and return the C heap's free pages to the system (glibc malloc_trim). Arrays under
+    """Collect garbage, free the encoding kernels' cached blocks (nerf/_ext.py, when loaded: up to 1 GiB kept
+    for reuse across steps, of sizes the next phase or window may never ask for) and return the C heap's
+    free pages to the system (glibc malloc_trim). Arrays under
     glibc's mmap threshold (which rises to 32 MB once such blocks are freed) are carved from the heap, and
     their pages stay resident after they are freed; the next phase's large arrays are mapped afresh beside
     them, so a phase's peak would carry the last phase's garbage. True where the heap could be trimmed."""
     gc.collect()
+    ext = sys.modules.get("nerf._ext")  # (never imported here: the runner calls this without torch)
+    if ext is not None:
+        ext.release_cached()
     trim = _malloc_trim()
     if trim is None:
         return False

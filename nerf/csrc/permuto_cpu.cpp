@@ -193,6 +193,23 @@ class BlockPool {
     std::free(p);
   }
 
+  // Frees every cached block (between a fit's phases and windows: the next one's sizes differ, and cached
+  // blocks of the last one would sit beside its arrays). Returns the bytes freed.
+  size_t release() {
+    std::lock_guard<std::mutex> lock(mu_);
+    const size_t freed = cached_;
+    for (auto& kv : free_)
+      for (void* p : kv.second) std::free(p);
+    free_.clear();
+    cached_ = 0;
+    return freed;
+  }
+
+  size_t cached() {
+    std::lock_guard<std::mutex> lock(mu_);
+    return cached_;
+  }
+
  private:
   std::mutex mu_;
   std::unordered_map<size_t, std::vector<void*>> free_;
@@ -215,11 +232,24 @@ torch::Tensor pooled_empty(at::IntArrayRef sizes) {
 }
 
 // Per-thread scratch that keeps its pages between calls.
+thread_local std::vector<float> scratch_buf[3];
+
 float* scratch(int slot, size_t n) {
-  thread_local std::vector<float> buf[3];
-  if (buf[slot].size() < n) buf[slot].resize(n);
-  return buf[slot].data();
+  if (scratch_buf[slot].size() < n) scratch_buf[slot].resize(n);
+  return scratch_buf[slot].data();
 }
+
+// The pool's cached blocks and the calling thread's scratch, freed; returns the bytes freed.
+int64_t release_cached() {
+  size_t freed = pool().release();
+  for (auto& b : scratch_buf) {
+    freed += b.capacity() * sizeof(float);
+    std::vector<float>().swap(b);
+  }
+  return (int64_t)freed;
+}
+
+int64_t cached_bytes() { return (int64_t)pool().cached(); }
 
 void check(const torch::Tensor& x, const torch::Tensor& table, const torch::Tensor& coef,
            const torch::Tensor& shifts) {
@@ -486,4 +516,6 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("permuto_simplices", &permuto_simplices, "hashed rows and barycentric weights of one level");
   m.def("random_access", &random_access, "random read / read-modify-write microbenchmark");
   m.def("march_occupied", &march_occupied, "cone marching through the occupancy grid: (ray_index, col, t)");
+  m.def("release_cached", &release_cached, "free the output pool's cached blocks and this thread's scratch: bytes");
+  m.def("cached_bytes", &cached_bytes, "bytes of output blocks the pool holds for reuse");
 }
