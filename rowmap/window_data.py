@@ -56,7 +56,7 @@ def load_labels(frames: pd.DataFrame, dets: pd.DataFrame | None, data_root: Path
             drop = (inst > 0) & ~keep[inst]
             sem[drop] = VOID
             inst[drop] = 0
-        if len(score) > np.iinfo(insts.dtype).max:  # ids past int16's range (a 16-bit PNG's upper half)
+        if len(score) - 1 > np.iinfo(insts.dtype).max:  # ids past int16's range (a 16-bit PNG's upper half)
             insts = insts.astype(np.int32)
         sems[j], insts[j] = sem, inst
         scores.append(score)

@@ -52,10 +52,7 @@ class WindowLabels:
     @property
     def confidence(self) -> np.ndarray:
         """[N, H, W] float32 confidence image of every frame (built on each call: for tools and tests)."""
-        frames = np.arange(len(self.semantic))[:, None, None]
-        conf = self.scores[frames, self.instance]
-        conf[self.semantic == VOID] = 0.0
-        return conf
+        return self.confidence_at(*np.indices(self.semantic.shape))
 
     def take(self, idx: np.ndarray) -> "WindowLabels":
         """The labels of the frames `idx` only, in that order."""

@@ -37,3 +37,8 @@ def test_without_detections_every_segment_scores_one_and_large_ids_fit(tmp_path)
     lab = load_labels(frames, None, tmp_path)
     assert lab.instance[0].tolist() == [[0, 40000, 40000], [7, 7, 0]]      # past int16: held as int32
     assert (lab.confidence == 1).all()
+
+
+def test_the_largest_int16_id_stays_int16(tmp_path):
+    lab = load_labels(_frames(tmp_path, [np.array([[0, 32767, 1], [1, 0, 0]])]), None, tmp_path)
+    assert lab.instance.dtype == np.int16 and lab.instance[0, 0, 1] == 32767
