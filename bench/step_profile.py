@@ -1,12 +1,11 @@
 """Where a training step's time goes: the colour fit of one window under torch's profiler, op by op.
 
 Fits window `--window` of `--seq` (the nerf_fit stage's model settings, its depth-corrected initial poses, the
-poses moving from the first step) twice under the profiler, for SETUP_STEPS and for SETUP_STEPS + `--steps`
-colour steps (after an unprofiled fit of 2 steps that loads the fused kernel and warms the allocator); the
-difference per op is what the steps cost, the window's set-up left out. Each op's self CPU time is put in one group
-(encoding, decoders, marching, compositing and losses, optimiser, pose and rays, occupancy updates, pixel
-sampling, other) and the
-groups are reported as shares of the steps' wall time; what no op accounts for (Python between ops, the
+poses moving from the first step) for 1 + `--steps` colour steps under the profiler (after an unprofiled fit of 2
+steps that loads the fused kernel and warms the allocator); only the ops that start after the first step ends
+and before the last one ends are counted, so the window's set-up is left out. Each op's self CPU time is put in
+one group (encoding, decoders, marching, compositing and losses, optimiser, pose and rays, occupancy updates, pixel
+sampling, other) and the groups are reported as shares of the steps' wall time; what no op accounts for (Python between ops, the
 marching kernel, which is not a torch op) is its own group. The encoding is also held against the machine's own
 limit, as `pag bench encoding` does: the C++ loop that makes the random table reads and read-modify-writes
 (4 + 4 per point and level) the forward and backward must make, timed on the same number of points per step
@@ -59,8 +58,8 @@ GROUPS: tuple[tuple[str, tuple[str, ...]], ...] = (
 
 UNTRACED = "untraced (Python, marching kernel)"
 """The group of the steps' wall time that no profiled op accounts for."""
-SETUP_STEPS = 10
-"""Steps of the shorter of the two profiled fits; the per-step table is the longer fit's ops less the shorter's."""
+STEP_MARK = "step_profile::mark"
+"""The profiler range dropped after the first and after the last profiled step."""
 
 
 def group_of(op: str) -> str:
@@ -69,6 +68,17 @@ def group_of(op: str) -> str:
         if any(k.lower() in low for k in keys):
             return name
     return "other"
+
+
+def steps_self_seconds(events) -> pd.Series:
+    """Self CPU seconds per op name of the events that start between the first and the last STEP_MARK."""
+    starts = sorted(e.time_range.start for e in events if e.name == STEP_MARK)
+    lo, hi = starts[0], starts[-1]
+    secs: dict[str, float] = {}
+    for e in events:
+        if e.name != STEP_MARK and lo < e.time_range.start < hi:
+            secs[e.name] = secs.get(e.name, 0.0) + e.self_cpu_time_total / 1e6
+    return pd.Series(secs, dtype=float)
 
 
 def encoding_limit_s(model, n_points: int, repeats: int = 5) -> float:
@@ -135,22 +145,23 @@ def profile(data_root: Path, seq: str, window: int, steps: int, threads: int) ->
     torch.set_num_threads(threads)
     data, cfg = fitted_window(data_root, seq, window)
     fit_window(data, replace(cfg, steps=2), render_val=False)  # kernel, allocator
+    # one profiled fit of steps + 1 steps; progress comes after the first and the last step (and every 50th), so
+    # a marker dropped at those two calls brackets the last `steps` steps: the set-up and the first step are out
+    marks: list[float] = []
 
-    def profiled(n_steps: int) -> tuple[pd.Series, object, float]:
-        marks: list[float] = []
-        with torch.profiler.profile(activities=[torch.profiler.ProfilerActivity.CPU]) as prof:
-            res = fit_window(data, replace(cfg, steps=n_steps), render_val=False,
-                             progress=lambda done, total, info: marks.append(time.perf_counter()))
-        per_step = (marks[-1] - marks[0]) / (n_steps - 1)  # progress comes at the first and the last step
-        return pd.Series({e.key: e.self_cpu_time_total / 1e6 for e in prof.key_averages()}), res, per_step
+    def mark(done: int, total: int, info: dict) -> None:
+        if done in (1, total):
+            marks.append(time.perf_counter())
+            with torch.profiler.record_function(STEP_MARK):
+                pass
 
-    # the set-up (occupancy, depth masks, sampling weights) is the same in both fits: the difference is the steps'
-    short, _, _ = profiled(SETUP_STEPS)
-    long, res, per_step = profiled(SETUP_STEPS + steps)
-    diff = long.sub(short, fill_value=0.0).clip(lower=0.0)
-    ops = pd.DataFrame({"op": diff.index, "seconds": diff.to_numpy()})
+    with torch.profiler.profile(activities=[torch.profiler.ProfilerActivity.CPU]) as prof:
+        res = fit_window(data, replace(cfg, steps=steps + 1), render_val=False, progress=mark)
+    per_step = (marks[-1] - marks[0]) / steps
+    secs = steps_self_seconds(prof.events())
+    ops = pd.DataFrame({"op": secs.index, "seconds": secs.to_numpy()})
     # what the profiler does not see: Python between ops and the marching kernel (called outside torch's ops)
-    untraced = max(0.0, per_step * steps - float(diff.sum()))
+    untraced = max(0.0, per_step * steps - float(secs.sum()))
     ops = pd.concat([ops, pd.DataFrame([{"op": UNTRACED, "seconds": untraced}])], ignore_index=True)
     ops["group"] = ops.op.map(lambda op: UNTRACED if op == UNTRACED else group_of(op))
     total = ops.seconds.sum()
