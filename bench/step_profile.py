@@ -4,12 +4,12 @@ Fits window `--window` of `--seq` (the nerf_fit stage's model settings, its dept
 poses moving from the first step) for 1 + `--steps` colour steps under the profiler (after an unprofiled fit of 2
 steps that loads the fused kernel and warms the allocator); only the ops that start after the first step ends
 and before the last one ends are counted, so the window's set-up is left out. Each op's self CPU time is put in
-one group (encoding, decoders, marching, compositing and losses, optimiser, pose and rays, occupancy updates, pixel
-sampling, other) and the groups are reported as shares of the steps' wall time; what no op accounts for (Python between ops, the
-marching kernel, which is not a torch op) is its own group. The encoding is also held against the machine's own
-limit, as `pag bench encoding` does: the C++ loop that makes the random table reads and read-modify-writes
-(4 + 4 per point and level) the forward and backward must make, timed on the same number of points per step
-(the samples the steps encoded).
+one group (encoding, decoders, marching, compositing and losses, optimiser, pose and rays, occupancy updates,
+pixel sampling, other) and the groups are reported as shares of the steps' wall time; what no op accounts for
+(Python between ops, the marching kernel, which is not a torch op) is its own group. The encoding is also held
+against the machine's own limit, as `pag bench encoding` does: the C++ loop that makes the random table reads
+and read-modify-writes (4 + 4 per point and level) the forward and backward must make, timed on the same number
+of points per step (the samples the steps encoded).
 
 Output `step_profile.parquet`: one row per group (group, seconds, share, ms_per_step), then one per op of the
 largest 15 (group 'op:<group>', op name), with the run's size columns (seq, window, width, height, steps,
