@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING, Protocol, runtime_checkable
 
+import torch
 from torch import Tensor, nn
 
 if TYPE_CHECKING:
@@ -46,7 +47,75 @@ class Field(Protocol):
         ...
 
 
-def mlp(n_in: int, hidden: int, n_hidden: int, n_out: int) -> nn.Sequential:
+CHUNK_ROWS = 4096
+"""rows of an MLP's input the CPU path pushes through all layers together: a chunk's activations (4096 x 64
+floats, 1 MB) stay in the L2 cache between layers and between the forward and backward products."""
+
+
+class _ChunkedMLP(torch.autograd.Function):
+    """Linear-ReLU-...-Linear, forward and backward chunk by chunk (CHUNK_ROWS). The forward keeps every
+    hidden layer's output ([rows, hidden] floats each, 18 MB for 72,000 rows of 64); the backward goes through
+    the chunks again, accumulating the weight gradients and writing each chunk's input gradient. Same values
+    as the layer-by-layer products up to the order of the sums."""
+
+    @staticmethod
+    def forward(ctx, x: Tensor, *params: Tensor) -> Tensor:
+        weights, biases = params[0::2], params[1::2]
+        n = x.shape[0]
+        out = x.new_empty(n, weights[-1].shape[0])
+        keep = ctx is not None
+        hidden = [x.new_empty(n if keep else min(n, CHUNK_ROWS), w.shape[0]) for w in weights[:-1]]
+        for s in range(0, n, CHUNK_ROWS):
+            h = x[s:s + CHUNK_ROWS]
+            for w, b, buf in zip(weights[:-1], biases[:-1], hidden):
+                rows = slice(s, s + len(h)) if keep else slice(0, len(h))
+                h = torch.addmm(b, h, w.t(), out=buf[rows]).relu_()
+            torch.addmm(biases[-1], h, weights[-1].t(), out=out[s:s + CHUNK_ROWS])
+        if keep:
+            ctx.save_for_backward(x, *hidden, *params)
+            ctx.n_hidden = len(hidden)
+        return out
+
+    @staticmethod
+    def backward(ctx, grad_out: Tensor) -> tuple[Tensor | None, ...]:
+        x, *rest = ctx.saved_tensors
+        hidden, params = rest[:ctx.n_hidden], rest[ctx.n_hidden:]
+        weights = params[0::2]
+        grad_w = [torch.zeros_like(p) for p in params]
+        grad_x = torch.empty_like(x) if ctx.needs_input_grad[0] else None
+        grad_out = grad_out.contiguous()
+        for s in range(0, x.shape[0], CHUNK_ROWS):
+            acts = [a[s:s + CHUNK_ROWS] for a in (x, *hidden)]
+            g = grad_out[s:s + CHUNK_ROWS]
+            for i in range(len(weights) - 1, -1, -1):
+                grad_w[2 * i].addmm_(g.t(), acts[i])
+                grad_w[2 * i + 1].add_(g.sum(0))
+                if i > 0:
+                    g = torch.ops.aten.threshold_backward(g @ weights[i], acts[i], 0)
+                elif grad_x is not None:
+                    torch.mm(g, weights[0], out=grad_x[s:s + CHUNK_ROWS])
+        return (grad_x, *(g if need else None for g, need in zip(grad_w, ctx.needs_input_grad[1:])))
+
+
+class MLP(nn.Sequential):
+    """Linear-ReLU-...-Linear as an nn.Sequential (same parameters and state_dict keys). On the CPU, for
+    float32 inputs of more than CHUNK_ROWS rows, it runs chunk by chunk (_ChunkedMLP): the thin products of
+    a NeRF's decoders (25-64 inputs) then work in the cache, 1.6-1.9x faster than layer by layer over the
+    whole batch at one thread (decoders of a 72,000-sample step, forward and backward). Elsewhere (CUDA,
+    autocast, small batches) the layers run one by one."""
+
+    def forward(self, x: Tensor) -> Tensor:
+        if (x.device.type != "cpu" or x.dtype != torch.float32 or x.dim() != 2 or x.shape[0] <= CHUNK_ROWS
+                or torch.is_autocast_enabled("cpu")):
+            return super().forward(x)
+        params = [p for layer in self if isinstance(layer, nn.Linear) for p in (layer.weight, layer.bias)]
+        if torch.is_grad_enabled() and (x.requires_grad or any(p.requires_grad for p in params)):
+            return _ChunkedMLP.apply(x, *params)
+        with torch.no_grad():
+            return _ChunkedMLP.forward(None, x, *params)
+
+
+def mlp(n_in: int, hidden: int, n_hidden: int, n_out: int) -> MLP:
     """n_hidden ReLU layers of width `hidden`, then a linear layer to n_out."""
     layers: list[nn.Module] = []
     d = n_in
@@ -54,7 +123,7 @@ def mlp(n_in: int, hidden: int, n_hidden: int, n_out: int) -> nn.Sequential:
         layers += [nn.Linear(d, hidden), nn.ReLU(inplace=True)]
         d = hidden
     layers.append(nn.Linear(d, n_out))
-    return nn.Sequential(*layers)
+    return MLP(*layers)
 
 
 def param_count(module: nn.Module) -> int:
