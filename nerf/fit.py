@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import copy
 import time
-from collections.abc import Callable, Collection
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -83,7 +83,7 @@ def fit_colour(data: WindowData, cfg: NerfConfig, depth_poses: DepthPoses = "off
 
 def fit_panoptic_window(data: WindowData, labels: WindowLabels | Callable[[], WindowLabels] | None,
                         cfg: NerfConfig, panoptic: PanopticConfig, depth_poses: DepthPoses = "off",
-                        render_scale: float = 1.0, full_size: Collection[int] = (), device: str = "cpu",
+                        render_scale: float = 1.0, device: str = "cpu",
                         progress: Progress | None = None, colour: ColourPhase | None = None,
                         name: str = "window", icp_max_depth_m: float = 0.0) -> WindowFit:
     """Fit window `data` and render its validation frames.
@@ -92,8 +92,8 @@ def fit_panoptic_window(data: WindowData, labels: WindowLabels | Callable[[], Wi
     2. with panoptic.enabled: the panoptic phase from the detector's `labels` (a WindowLabels, or a function
        that loads them: called only after the colour phase, so a window's label images are not held through
        it), seeded with cfg.seed; then colour and panoptic rendered in one pass per validation frame, at the
-       working scale working_scale(render_scale, width) (0 = automatic, 1 = full size) except the frames in
-       `full_size` (window frame indices), and the 3D instance completion over those renders;
+       working scale working_scale(render_scale, width) (0 = automatic, 1 = full size), and the 3D instance
+       completion over those renders;
        without it: the colour renders of the validation frames, at full size.
 
     `colour`: the colour phase already fitted by fit_colour(data, cfg, depth_poses); the panoptic phase then
@@ -126,7 +126,7 @@ def fit_panoptic_window(data: WindowData, labels: WindowLabels | Callable[[], Wi
         del window_labels  # a window's label images are not needed past the fit (hundreds of MB at 1280x720)
         release_freed()
         scale = working_scale(render_scale, res.model.wh[0])
-        render = render_at(lambda m, i: render_panoptic(m, pan, i), res.model, scale, set(full_size))
+        render = render_at(lambda m, i: render_panoptic(m, pan, i), res.model, scale)
         validate(res, fitted, _reporting(render, fitted.is_train, "panoptic validation render", progress))
         val = [int(i) for i in np.flatnonzero(~fitted.is_train)]
         release_freed()

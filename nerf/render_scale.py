@@ -1,6 +1,6 @@
 """Renders at a working scale: a fitted model seen through a camera with fewer pixels (scaled_model), its renders
-resized back to the recorded size (to_full_size), and a render function that does both except on the frames
-that must keep their detail (render_at). The automatic scale keeps renders at most RENDER_WIDTH pixels wide."""
+resized back to the recorded size (to_full_size), and a render function that does both (render_at). The
+automatic scale keeps renders at most RENDER_WIDTH pixels wide."""
 from __future__ import annotations
 
 from dataclasses import replace
@@ -52,16 +52,14 @@ def to_full_size(out: dict, wh: tuple[int, int]) -> dict:
     return res
 
 
-def render_at(render, model, scale: float, full_size: set[int]):
-    """render(model, i) -> a render of frame i at the working `scale` (full size for frames in `full_size`),
-    returned at full size; a resized one keeps its colour at the working scale as "rgb_working"."""
+def render_at(render, model, scale: float):
+    """render(model, i) -> a render of frame i at the working `scale`, returned at full size; a resized one keeps
+    its colour at the working scale as "rgb_working"."""
     if scale >= 1:
         return lambda i: render(model, i)
     small = scaled_model(model, scale)
 
     def at_scale(i: int) -> dict:
-        if i in full_size:
-            return render(model, i)
         out = render(small, i)
         return {**to_full_size(out, model.wh), "rgb_working": out["rgb"]}
 

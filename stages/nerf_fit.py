@@ -62,14 +62,13 @@ class Config:
     panoptic: PanopticConfig = field(default_factory=PanopticConfig)
     """the panoptic phase after the colour phase (nerf/panoptic/train.py)."""
     render_scale: float = 0.0
-    """working scale of the validation renders that fusion and counting use, in [0, 1]: 0.5 renders them at half
-    width and height (intrinsics scaled alike; about a quarter of the render time) and stores them resized back
-    to full size (colour bilinear; depth and labels nearest, so no depth or label is invented between two
-    surfaces). Labelled frames (the window's centre included) are always rendered at full size, so the
-    evaluated frames keep their detail. 1 = full size (no resizing); 0 = automatic: the largest scale whose
-    renders are at most RENDER_WIDTH (320, nerf/render_scale.py) pixels wide (1 up to 320x180, 0.5 at 640x360,
-    0.25 at 1280x720): a window renders every other frame of its span, so at 0.5 the renders of a 1280x720
-    window cost about as much as its colour fit. Validation PSNR is measured at the scale each frame was
+    """working scale of the validation renders that fusion and counting use, in [0, 1]: 0.5 renders them at half width
+    and height (intrinsics scaled alike; about a quarter of the render time) and stores them resized back to full size
+    (colour bilinear; depth and labels nearest, so no depth or label is invented between two surfaces); labelled frames
+    too (docs/benchmarks.md: at full size they cost 4-16x and scored no better). 1 = full size (no resizing); 0 =
+    automatic: the largest scale whose renders are at most RENDER_WIDTH (320, nerf/render_scale.py) pixels wide (1 up to
+    320x180, 0.5 at 640x360, 0.25 at 1280x720): a window renders every other frame of its span, so at 0.5 the renders of
+    a 1280x720 window cost about as much as its colour fit. Validation PSNR is measured at the scale each frame was
     rendered at (the recorded image area-averaged to that size)."""
 
     def __post_init__(self) -> None:
@@ -108,11 +107,9 @@ def fit_one(payload: dict) -> dict:
     parallel.report(key, 0, len(frames), phase="load frames")
     data = load_window(frames, data_root)
     detections = pd.DataFrame(payload["detections"]) if payload["detections"] else None
-    # labelled frames (the centre included) are rendered at full size: the evaluated frames keep their detail
-    full = set(np.flatnonzero(frames[[c for c in ("is_center", "labelled") if c in frames]].any(axis=1)).tolist())
     fit = fit_panoptic_window(data, lambda: load_labels(frames, detections, data_root), payload["cfg"],
                               payload["panoptic"], depth_poses=payload["depth_poses"],
-                              render_scale=payload["render_scale"], full_size=full, device=payload["device"],
+                              render_scale=payload["render_scale"], device=payload["device"],
                               progress=lambda s, n, info: parallel.report(key, s, n, **info), name=f"window {wid}",
                               icp_max_depth_m=payload["icp_max_depth_m"])
     res, pan = fit.colour, fit.panoptic

@@ -68,7 +68,7 @@ def test_nerf_fit_task_fits_through_fit_panoptic_window(tmp_path, monkeypatch):
     (data, labels, mcfg, pcfg), kw = got.value.args
     assert data is window and labels() == ("labels of", [10, 11, 12, 13], None, tmp_path.resolve())
     assert mcfg == replace(nerf_fit.model_config(cfg), seed=5) and pcfg == cfg.panoptic
-    assert kw["depth_poses"] == "scale" and kw["render_scale"] == 0.5 and kw["full_size"] == {1, 2}
+    assert kw["depth_poses"] == "scale" and kw["render_scale"] == 0.5 and "full_size" not in kw
     assert kw["device"] == "cpu" and kw["name"] == "window 2" and callable(kw["progress"])
 
 

@@ -30,7 +30,7 @@ def test_labels_are_loaded_after_the_colour_phase_and_every_validation_frame_is_
         events.append("labels loaded")
         return labels
 
-    fit = fit_panoptic_window(data, load, preset("cpu", **COLOUR), PANOPTIC, render_scale=0.5, full_size={2},
+    fit = fit_panoptic_window(data, load, preset("cpu", **COLOUR), PANOPTIC, render_scale=0.5,
                               progress=lambda s, n, info: events.append(info.get("phase", "colour step")))
     val = np.flatnonzero(~data.is_train)
     assert sorted(fit.colour.renders) == val.tolist()

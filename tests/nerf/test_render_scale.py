@@ -1,5 +1,4 @@
-"""Renders at a working scale (nerf/render_scale.py): scaled intrinsics, stored at full size; labelled frames at
-full size."""
+"""Renders at a working scale (nerf/render_scale.py): scaled intrinsics, stored at full size."""
 from dataclasses import dataclass
 
 import numpy as np
@@ -43,7 +42,7 @@ def test_to_full_size_keeps_types_and_invents_no_labels_or_depths():
     assert full["samples_per_ray"] == 3.0
 
 
-def test_render_at_renders_labelled_frames_full_size_and_the_others_small():
+def test_render_at_renders_every_frame_small_and_returns_it_at_full_size():
     cam = Cam(torch.tensor([[50.0, 50.0, 32.0, 20.0]] * 3), (64, 40))
     seen = []
 
@@ -53,15 +52,15 @@ def test_render_at_renders_labelled_frames_full_size_and_the_others_small():
         return {"rgb": torch.zeros(h, w, 3), "depth": torch.zeros(h, w), "semantic": np.zeros((h, w), np.uint8),
                 "instance": np.zeros((h, w), np.int32), "samples_per_ray": 1.0}
 
-    fn = render_at(render, cam, 0.25, full_size={1})
+    fn = render_at(render, cam, 0.25)
     outs = [fn(i) for i in range(3)]
-    assert all(o["rgb"].shape == (40, 64, 3) for o in outs)
-    assert seen == [(0, (16, 10)), (1, (64, 40)), (2, (16, 10))]
+    assert all(o["rgb"].shape == (40, 64, 3) and o["instance"].shape == (40, 64) for o in outs)
+    assert seen == [(0, (16, 10)), (1, (16, 10)), (2, (16, 10))]
     # a resized render keeps its colour at the working scale (validation PSNR is measured there)
-    assert outs[0]["rgb_working"].shape == (10, 16, 3) and "rgb_working" not in outs[1]
+    assert all(o["rgb_working"].shape == (10, 16, 3) for o in outs)
     seen.clear()
-    render_at(render, cam, 1.0, full_size=set())(0)
-    assert seen == [(0, (64, 40))]
+    out = render_at(render, cam, 1.0)(0)
+    assert seen == [(0, (64, 40))] and "rgb_working" not in out
 
 
 def test_automatic_render_scale_keeps_renders_at_most_320_px_wide():
@@ -86,7 +85,7 @@ def test_validation_psnr_of_a_small_render_is_measured_at_its_scale():
     small = torch.from_numpy(cv2.resize(image, (32, 20), interpolation=cv2.INTER_AREA)).float() / 255
     res = SimpleNamespace(renders={}, val_psnr={}, samples_per_ray=0.0, render_s_per_image=0.0)
     cam = Cam(torch.tensor([[50.0, 50.0, 32.0, 20.0]] * 2), (64, 40))
-    render = render_at(lambda m, i: {"rgb": small, "samples_per_ray": 1.0}, cam, 0.5, full_size=set())
+    render = render_at(lambda m, i: {"rgb": small, "samples_per_ray": 1.0}, cam, 0.5)
     validate(res, data, render)
     assert res.val_psnr[11] > 60 and "rgb_working" not in res.renders[1]
     assert res.renders[1]["rgb"].shape == (40, 64, 3)
