@@ -52,6 +52,22 @@ CHUNK_ROWS = 4096
 floats, 1 MB) stay in the L2 cache between layers and between the forward and backward products."""
 
 
+def _forward_chunks(x: Tensor, params: tuple[Tensor, ...], keep_hidden: bool) -> tuple[Tensor, list[Tensor]]:
+    """Linear-ReLU-...-Linear over `x` chunk by chunk (CHUNK_ROWS; `params` = weight, bias of each layer):
+    the output and, with keep_hidden, every hidden layer's output over all rows (else [])."""
+    weights, biases = params[0::2], params[1::2]
+    n = x.shape[0]
+    out = x.new_empty(n, weights[-1].shape[0])
+    hidden = [x.new_empty(n if keep_hidden else min(n, CHUNK_ROWS), w.shape[0]) for w in weights[:-1]]
+    for s in range(0, n, CHUNK_ROWS):
+        h = x[s:s + CHUNK_ROWS]
+        rows = slice(s, s + len(h)) if keep_hidden else slice(0, len(h))
+        for w, b, buf in zip(weights[:-1], biases[:-1], hidden):
+            h = torch.addmm(b, h, w.t(), out=buf[rows]).relu_()
+        torch.addmm(biases[-1], h, weights[-1].t(), out=out[s:s + CHUNK_ROWS])
+    return out, hidden if keep_hidden else []
+
+
 class _ChunkedMLP(torch.autograd.Function):
     """Linear-ReLU-...-Linear, forward and backward chunk by chunk (CHUNK_ROWS). The forward keeps every
     hidden layer's output ([rows, hidden] floats each, 18 MB for 72,000 rows of 64); the backward goes through
@@ -60,20 +76,9 @@ class _ChunkedMLP(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, x: Tensor, *params: Tensor) -> Tensor:
-        weights, biases = params[0::2], params[1::2]
-        n = x.shape[0]
-        out = x.new_empty(n, weights[-1].shape[0])
-        keep = ctx is not None
-        hidden = [x.new_empty(n if keep else min(n, CHUNK_ROWS), w.shape[0]) for w in weights[:-1]]
-        for s in range(0, n, CHUNK_ROWS):
-            h = x[s:s + CHUNK_ROWS]
-            for w, b, buf in zip(weights[:-1], biases[:-1], hidden):
-                rows = slice(s, s + len(h)) if keep else slice(0, len(h))
-                h = torch.addmm(b, h, w.t(), out=buf[rows]).relu_()
-            torch.addmm(biases[-1], h, weights[-1].t(), out=out[s:s + CHUNK_ROWS])
-        if keep:
-            ctx.save_for_backward(x, *hidden, *params)
-            ctx.n_hidden = len(hidden)
+        out, hidden = _forward_chunks(x, params, keep_hidden=True)
+        ctx.save_for_backward(x, *hidden, *params)
+        ctx.n_hidden = len(hidden)
         return out
 
     @staticmethod
@@ -111,8 +116,7 @@ class MLP(nn.Sequential):
         params = [p for layer in self if isinstance(layer, nn.Linear) for p in (layer.weight, layer.bias)]
         if torch.is_grad_enabled() and (x.requires_grad or any(p.requires_grad for p in params)):
             return _ChunkedMLP.apply(x, *params)
-        with torch.no_grad():
-            return _ChunkedMLP.forward(None, x, *params)
+        return _forward_chunks(x, tuple(params), keep_hidden=False)[0]
 
 
 def mlp(n_in: int, hidden: int, n_hidden: int, n_out: int) -> MLP:
