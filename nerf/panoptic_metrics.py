@@ -45,6 +45,23 @@ class PanopticAccumulator:
 
     def update(self, pred_sem: np.ndarray, pred_inst: np.ndarray, gt_sem: np.ndarray, gt_inst: np.ndarray) -> None:
         """Add one image. Arrays [H, W]; instance 0 on a thing class is treated as its own segment id 0."""
+        self.add(self.image(pred_sem, pred_inst, gt_sem, gt_inst))
+
+    def add(self, other: PanopticAccumulator) -> None:
+        """Add the counts of another accumulator (of the same classes)."""
+        for mine, theirs in ((self.tp, other.tp), (self.fp, other.fp), (self.fn, other.fn), (self.iou, other.iou)):
+            for c, v in theirs.items():
+                mine[c] = mine.get(c, 0) + v
+
+    def image(self, pred_sem: np.ndarray, pred_inst: np.ndarray, gt_sem: np.ndarray, gt_inst: np.ndarray
+              ) -> PanopticAccumulator:
+        """A new accumulator of the same classes holding one image's counts (self is not changed, so images
+        can be counted on several threads and added in any order)."""
+        one = PanopticAccumulator(self.things, self.stuff, self.void)
+        one._count(pred_sem, pred_inst, gt_sem, gt_inst)
+        return one
+
+    def _count(self, pred_sem: np.ndarray, pred_inst: np.ndarray, gt_sem: np.ndarray, gt_inst: np.ndarray) -> None:
         if pred_sem.shape != gt_sem.shape or pred_inst.shape != gt_inst.shape or pred_sem.shape != pred_inst.shape:
             raise ValueError(f"panoptic shapes differ: pred {pred_sem.shape}/{pred_inst.shape}, "
                              f"gt {gt_sem.shape}/{gt_inst.shape}")
@@ -119,13 +136,17 @@ class ConfusionAccumulator:
         self.matrix = np.zeros((self.n_classes, self.n_classes + 1), np.int64)
 
     def update(self, pred_sem: np.ndarray, gt_sem: np.ndarray) -> None:
+        self.matrix += self.image(pred_sem, gt_sem)
+
+    def image(self, pred_sem: np.ndarray, gt_sem: np.ndarray) -> np.ndarray:
+        """One image's confusion counts [n_classes, n_classes + 1] (self is not changed)."""
         n = self.n_classes
         g = gt_sem.ravel().astype(np.int64)
         p = pred_sem.ravel().astype(np.int64)
         keep = (g >= 0) & (g < n)
         g, p = g[keep], p[keep]
         p = np.where((p >= 0) & (p < n), p, n)
-        self.matrix += np.bincount(g * (n + 1) + p, minlength=n * (n + 1)).reshape(n, n + 1)
+        return np.bincount(g * (n + 1) + p, minlength=n * (n + 1)).reshape(n, n + 1)
 
     def iou_per_class(self) -> np.ndarray:
         """IoU per class; NaN for classes absent from both prediction and ground truth."""

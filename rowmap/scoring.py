@@ -43,11 +43,26 @@ class PanopticScore:
 
     def update(self, p_sem: np.ndarray, p_inst: np.ndarray, g_sem: np.ndarray, g_inst: np.ndarray,
                fruit_ids: np.ndarray) -> None:
-        self.pq.update(p_sem, p_inst, g_sem, g_inst)
-        self.conf.update(p_sem, g_sem)
-        self.ids.append(dominant_ids(g_inst, thing_instances(p_sem, p_inst), fruit_ids,
-                                     min_px=image_pixels_for(self.min_visible_px, g_inst.size)))
-        self.n += 1
+        self.add(self.image(p_sem, p_inst, g_sem, g_inst, fruit_ids))
+
+    def image(self, p_sem: np.ndarray, p_inst: np.ndarray, g_sem: np.ndarray, g_inst: np.ndarray,
+              fruit_ids: np.ndarray) -> PanopticScore:
+        """A new score holding one image (self is not changed): images scored on several threads, then added
+        in frame order, give what update() gives."""
+        one = PanopticScore(self.min_visible_px)
+        one.pq = self.pq.image(p_sem, p_inst, g_sem, g_inst)
+        one.conf.matrix = self.conf.image(p_sem, g_sem)
+        one.ids = [dominant_ids(g_inst, thing_instances(p_sem, p_inst), fruit_ids,
+                                min_px=image_pixels_for(self.min_visible_px, g_inst.size))]
+        one.n = 1
+        return one
+
+    def add(self, other: PanopticScore) -> None:
+        """Add another score's images after this one's."""
+        self.pq.add(other.pq)
+        self.conf.matrix += other.conf.matrix
+        self.ids += other.ids
+        self.n += other.n
 
     def metrics(self, min_frames: int, suffix: str = "") -> dict[str, float]:
         if not self.n:

@@ -9,6 +9,7 @@ import pandas as pd
 import schemas
 from pipeline.classes import THING_IDS
 from pipeline.images import read_depth_m, read_label
+from pipeline.parallel import available_cores, in_order
 from pipeline.stage import StageContext
 
 INPUTS = ("frames", "detections")
@@ -55,37 +56,44 @@ def verdict(area: np.ndarray, frac: np.ndarray, cfg: Config) -> tuple[np.ndarray
 def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]:
     frames: pd.DataFrame = inputs["frames"]
     dets: pd.DataFrame = inputs["detections"].copy()
-    dets["near_depth_frac"] = np.nan
-    dets["kept"] = True
-    dets["drop_reason"] = ""
-    by_frame = {fid: idx for fid, idx in dets.groupby("frame_id").groups.items()}
-    gt_rows = []
-    for fr in ctx.progress(frames.itertuples(index=False), "frames", total=len(frames)):
+    segment_ids = dets["segment_id"].to_numpy()
+    rows_of = dets.groupby("frame_id").indices   # frame -> row positions in dets
+    near_frac, kept_all = np.full(len(dets), np.nan), np.ones(len(dets), bool)
+    drop_reason = np.full(len(dets), "", object)
+
+    def check(fr) -> tuple:
+        """One frame's (detector masks' (area, near share, kept, reasons) or None, ground-truth rows), on a
+        worker thread."""
         depth = read_depth_m(ctx.abspath(fr.depth_path), fr.depth_scale_m)
         near = (depth > 0) & (depth <= cfg.max_depth_m)
-        idx = by_frame.get(fr.frame_id)
-        if idx is not None and isinstance(fr.det_instance_path, str):
+        pos, det, gt_rows = rows_of.get(fr.frame_id), None, []
+        if pos is not None and isinstance(fr.det_instance_path, str):
             inst = read_label(ctx.abspath(fr.det_instance_path), "detector instance")
             if inst.shape != depth.shape:
                 raise ValueError(f"frame {fr.frame_id}: detector instance PNG {fr.det_instance_path} is "
                                  f"{inst.shape}, depth is {depth.shape}")
-            ids = dets.loc[idx, "segment_id"].to_numpy()
-            area, frac = near_fractions(inst, near, ids)
-            kept, reasons = verdict(area, frac, cfg)
-            dets.loc[idx, "near_depth_frac"] = frac
-            dets.loc[idx, "kept"] = kept
-            dets.loc[idx, "drop_reason"] = reasons
+            area, frac = near_fractions(inst, near, segment_ids[pos])
+            det = (pos, frac, *verdict(area, frac, cfg))
         if isinstance(fr.gt_instance_path, str) and isinstance(fr.gt_semantic_path, str):
             inst = read_label(ctx.abspath(fr.gt_instance_path), "ground-truth instance")
             sem = read_label(ctx.abspath(fr.gt_semantic_path), "ground-truth semantic")
             ids = np.unique(inst[(inst > 0) & np.isin(sem, THING_IDS)])
-            if len(ids) == 0:
-                continue
-            area, frac = near_fractions(inst, near, ids)
-            kept, reasons = verdict(area, frac, cfg)
-            for i, a, f, k, r in zip(ids, area, frac, kept, reasons):
-                cls = np.bincount(sem[inst == i]).argmax()
-                gt_rows.append((fr.frame_id, int(i), int(cls), int(a), float(f), bool(k), r))
+            if len(ids):
+                area, frac = near_fractions(inst, near, ids)
+                kept, reasons = verdict(area, frac, cfg)
+                for i, a, f, k, r in zip(ids, area, frac, kept, reasons):
+                    cls = np.bincount(sem[inst == i]).argmax()
+                    gt_rows.append((fr.frame_id, int(i), int(cls), int(a), float(f), bool(k), r))
+        return det, gt_rows
+
+    gt_rows = []
+    checked = in_order(check, frames.itertuples(index=False), available_cores())
+    for det, rows in ctx.progress(checked, "frames", total=len(frames)):
+        if det is not None:
+            pos, frac, kept, reasons = det
+            near_frac[pos], kept_all[pos], drop_reason[pos] = frac, kept, reasons
+        gt_rows += rows
+    dets["near_depth_frac"], dets["kept"], dets["drop_reason"] = near_frac, kept_all, drop_reason
     gt = pd.DataFrame(gt_rows, columns=schemas.get("gt_segments").names) if gt_rows else schemas.empty("gt_segments")
     n_drop = int((~dets["kept"]).sum())
     ctx.summary.update(segments=len(dets), dropped=n_drop, gt_segments=len(gt),

@@ -12,6 +12,7 @@ from nerf.geometry import pose_matrix
 from nerf.metrics import ate_rmse, rotation_error_deg
 from pipeline.classes import THING_IDS, VOID
 from pipeline.images import read_label
+from pipeline.parallel import available_cores, in_order
 from pipeline.stage import StageContext
 from rowmap.renders import Renders
 from rowmap.ground_truth import gt_poses_by_frame, match_fruits, to_ground_truth_frame  # noqa: F401 (also used by tests)
@@ -108,19 +109,27 @@ def window_scores(inputs: dict, gt: GroundTruth, gt_poses: pd.DataFrame | None, 
             continue
         out: dict[str, float] = {"psnr": float(m.val_psnr)}
         nerf, det = PanopticScore(cfg.min_visible_px), PanopticScore(cfg.min_visible_px)
-        val = windows[(windows.window_id == wid) & (windows.split == "val")].frame_id.astype(int)
-        for fid in val:
-            if not gt.has(fid):
-                continue
+
+        def score(fid: int) -> tuple[PanopticScore | None, PanopticScore | None]:
+            """Frame fid's (render score, detector score), None where there is nothing to score; on a worker
+            thread."""
             g_sem, g_inst, near = gt.load(fid)
+            by_nerf = by_det = None
             if renders.has(wid, fid, "semantic", "instance"):
                 sp, ip = (gt.root / renders.relpath(wid, fid, k) for k in ("semantic", "instance"))
-                nerf.update(*load_pred(sp, ip, g_sem.shape, f"window {wid} render of frame {fid}"),
-                            g_sem, g_inst, near)
+                by_nerf = nerf.image(*load_pred(sp, ip, g_sem.shape, f"window {wid} render of frame {fid}"),
+                                     g_sem, g_inst, near)
             fr = frames.loc[fid]
             if isinstance(fr.det_semantic_path, str) and isinstance(fr.det_instance_path, str):
-                det.update(*load_pred(gt.root / fr.det_semantic_path, gt.root / fr.det_instance_path, g_sem.shape,
-                                      f"detector output of frame {fid}"), g_sem, g_inst, near)
+                by_det = det.image(*load_pred(gt.root / fr.det_semantic_path, gt.root / fr.det_instance_path,
+                                              g_sem.shape, f"detector output of frame {fid}"), g_sem, g_inst, near)
+            return by_nerf, by_det
+
+        val = windows[(windows.window_id == wid) & (windows.split == "val")].frame_id.astype(int)
+        for by_nerf, by_det in in_order(score, [f for f in val if gt.has(f)], available_cores()):
+            for total, one in ((nerf, by_nerf), (det, by_det)):
+                if one is not None:
+                    total.add(one)
         if nerf.n == 0 and len(val):
             ctx.count("windows_without_panoptic_scores")
         out.update(nerf.metrics(cfg.min_frames_id))
@@ -162,13 +171,15 @@ def row_scores(inputs: dict, gt: GroundTruth, gt_fruits: pd.DataFrame | None, gt
     pf: pd.DataFrame = inputs["panoptic_frames"]
     out: dict[str, float] = {}
     fused = PanopticScore(cfg.min_visible_px)
-    for r in ctx.progress(pf.itertuples(index=False), "fused frames", total=len(pf)):
-        fid = int(r.frame_id)
-        if not gt.has(fid):
-            continue
-        g_sem, g_inst, near = gt.load(fid)
-        fused.update(*load_pred(gt.root / r.semantic_path, gt.root / r.instance_path, g_sem.shape, f"fused frame {fid}"),
-                     g_sem, g_inst, near)
+    def score(r) -> PanopticScore:
+        """The fused frame r's score (on a worker thread)."""
+        g_sem, g_inst, near = gt.load(int(r.frame_id))
+        return fused.image(*load_pred(gt.root / r.semantic_path, gt.root / r.instance_path, g_sem.shape,
+                                      f"fused frame {r.frame_id}"), g_sem, g_inst, near)
+
+    scored = [r for r in pf.itertuples(index=False) if gt.has(int(r.frame_id))]
+    for one in ctx.progress(in_order(score, scored, available_cores()), "fused frames", total=len(scored)):
+        fused.add(one)
     out.update(fused.metrics(cfg.min_frames_id))
     if gt_fruits is not None:
         fruits = inputs["fruits"]

@@ -13,6 +13,7 @@ import pandas as pd
 import schemas
 from pipeline.classes import DEFAULT_CLASSES, THING_IDS, VOID
 from pipeline.images import ImageError, read_label, write_png
+from pipeline.parallel import available_cores, in_order
 from pipeline.stage import StageContext
 from sources.common import (FrameSource, IngestError, StampUnit, depth_to_mm, interpolate_poses, pair_nearest,
                             stamp_from_name, txyzq_from_pose)
@@ -272,13 +273,13 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
     decoded: dict[int, tuple[str, str, float]] = {}
     pairs = [(int(i), int(di[i])) for i in idx]
     first_error = ""
-    for ci, rgb, depth, err in ctx.progress(src.frames(pairs), "frames", len(pairs)):
+
+    def store(item: tuple) -> tuple[int, str, float]:
+        """Check and write one decoded frame (on a worker thread): (colour index, decode error, share of valid
+        depth pixels)."""
+        ci, rgb, depth, err = item
         if err:
-            if cfg.on_bad_image == "error":
-                raise IngestError(err)
-            first_error = first_error or err
-            note_capped(ctx, "skipped_bad_image", f"skipped frame at {cs[ci]} ns: {err}")
-            continue
+            return ci, err, 0.0
         h, w = rgb.shape[:2]
         rec.camera.check(w, h, f"colour image at {cs[ci]} ns")
         if depth.shape != (h, w):
@@ -286,12 +287,22 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
                               f"{depth.shape[0]} but colour is {w}x{h}; depth must be aligned to colour (RealSense: "
                               f"the aligned_depth_to_color stream)")
         mm = depth_to_mm(depth)
-        valid = float((mm > 0).mean())
+        write_png(out_dir / "rgb" / f"{cs[ci]}.png", rgb)
+        write_png(out_dir / "depth" / f"{cs[ci]}.png", mm)
+        return ci, "", float((mm > 0).mean())
+
+    # frames are decoded in the source's order on this thread and encoded on every core
+    stored = in_order(store, src.frames(pairs), available_cores())
+    for ci, err, valid in ctx.progress(stored, "frames", len(pairs)):
+        if err:
+            if cfg.on_bad_image == "error":
+                raise IngestError(err)
+            first_error = first_error or err
+            note_capped(ctx, "skipped_bad_image", f"skipped frame at {cs[ci]} ns: {err}")
+            continue
         if valid == 0:
             ctx.count("frames_without_valid_depth")
         name = f"{cs[ci]}.png"
-        write_png(out_dir / "rgb" / name, rgb)
-        write_png(out_dir / "depth" / name, mm)
         decoded[ci] = (ctx.relpath("images", f"rgb/{name}"), ctx.relpath("images", f"depth/{name}"), valid)
     order = [i for i in idx if i in decoded]
     if not order:

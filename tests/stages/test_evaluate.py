@@ -1,4 +1,5 @@
 import pandas as pd
+import pytest
 
 from rowmap.scoring import image_pixels_for, reference_pixels
 from stages.evaluate import Config, countable_fruits
@@ -32,3 +33,45 @@ def test_reference_pixels_and_their_inverse():
         for size in (320 * 180, 1280 * 720, 1000 * 700):
             assert reference_pixels(image_pixels_for(px, size), size) >= px
             assert reference_pixels(image_pixels_for(px, size) - 1, size) < px
+
+
+def test_images_scored_apart_and_added_equal_one_running_score():
+    """evaluate scores frames on worker threads (PanopticScore.image) and adds them in frame order: the same
+    PQ, mIoU and ID consistency as one score updated frame by frame."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    import numpy as np
+
+    from pipeline.classes import THING_IDS
+    from rowmap.scoring import PanopticScore
+
+    rng = np.random.default_rng(3)
+    frames = []
+    for _ in range(6):
+        g_inst = np.zeros((40, 60), np.int64)
+        g_sem = rng.choice([0, 1], size=(40, 60))
+        for fruit in range(1, 5):
+            v, u = rng.integers(0, 30), rng.integers(0, 50)
+            g_inst[v:v + 10, u:u + 10] = fruit
+            g_sem[v:v + 10, u:u + 10] = THING_IDS[fruit % len(THING_IDS)]
+        # the prediction: the fruits' ids renamed, some pixels flipped, one fruit merged into another
+        p_inst = np.where(g_inst > 0, g_inst + 10, 0)
+        p_inst[p_inst == 14] = 13 if rng.random() < 0.5 else 14
+        p_sem = np.where(rng.random(g_sem.shape) < 0.1, rng.choice([0, 1], size=g_sem.shape), g_sem)
+        frames.append((p_sem, p_inst, g_sem, g_inst, np.arange(1, 5)))
+    running = PanopticScore(1)
+    for f in frames:
+        running.update(*f)
+    added = PanopticScore(1)
+    with ThreadPoolExecutor(3) as pool:
+        for one in pool.map(lambda f: added.image(*f), frames):
+            added.add(one)
+    a, b = running.metrics(2), added.metrics(2)
+    assert a.keys() == b.keys() and a["id_consistency_n_fruits"] == 4
+    for k in a:
+        assert b[k] == pytest.approx(a[k], nan_ok=True), k
+    assert added.n == 6 and (added.conf.matrix == running.conf.matrix).all() and added.ids == running.ids
+    # a score that never saw an image adds nothing
+    empty = PanopticScore(1)
+    added.add(empty)
+    assert added.metrics(2) == b
