@@ -15,6 +15,7 @@ import schemas
 from nerf.geometry import pose_matrix
 from pipeline.classes import DEFAULT_CLASSES, THING_IDS, class_name
 from pipeline.images import ImageError, read_label
+from pipeline.parallel import available_cores, in_order
 from pipeline.stage import StageContext
 from nerf.surfaces import fit_sphere, plausible_fit, principal_extents, robust_centre, unproject
 from rowmap.colours import id_colours
@@ -250,7 +251,9 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
     ref_px: dict[int, float] = defaultdict(float)  # pixels with depth, scaled to a BASE_PIXELS image
     checked: dict[int, int] = defaultdict(int)      # fused frames with a detector image, per fruit
     confirmed: dict[int, int] = defaultdict(int)    # ... of them where the detector's segments cover the fruit
-    for r in ctx.progress(pf.itertuples(index=False), "unproject fruits", total=len(pf)):
+    def unproject_frame(r) -> tuple[int, list[tuple]]:
+        """Fused frame r's fruits (on a worker thread): (frame id, [(fruit, reference pixels with depth, whether
+        the detector covers it (None: no detector image), its majority class, its depths, its points)])."""
         fid = int(r.frame_id)
         if fid not in frames.index:
             raise ValueError(f"fruit_count: panoptic_frames frame {fid} is not in frames.parquet")
@@ -273,21 +276,32 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
         k = np.array([fr.fx, fr.fy, fr.cx, fr.cy], np.float64)
         v, u = np.nonzero(inst > 0)
         v, u, ids, starts, ends = runs_by_key(v, u, inst[v, u])
+        found = []
         for s0, s1 in zip(starts, ends):
-            fruit = int(ids[s0])
             vv, uu = v[s0:s1], u[s0:s1]
             d = depth[vv, uu]
             good = d > 0
-            seen[fruit].append(fid)
-            ref_px[fruit] += float(reference_pixels(int(good.sum()), inst.size))
-            if det is not None:
-                checked[fruit] += 1
-                confirmed[fruit] += int(np.mean(det[vv, uu] > 0) >= cfg.detector_cover)
-            votes[fruit].append(int(np.bincount(sem[vv, uu]).argmax()))
+            covered = None if det is None else bool(np.mean(det[vv, uu] > 0) >= cfg.detector_cover)
+            pts = None
             if good.any():
-                depths[fruit].append(d[good])
                 pick = subsample(int(good.sum()), cfg.max_points_per_view)
-                points[fruit].append(unproject(depth, k, c2w, vv[good][pick], uu[good][pick]))
+                pts = unproject(depth, k, c2w, vv[good][pick], uu[good][pick])
+            found.append((int(ids[s0]), float(reference_pixels(int(good.sum()), inst.size)), covered,
+                          int(np.bincount(sem[vv, uu]).argmax()), d[good], pts))
+        return fid, found
+
+    read_all = in_order(unproject_frame, pf.itertuples(index=False), available_cores())
+    for fid, found in ctx.progress(read_all, "unproject fruits", total=len(pf)):
+        for fruit, px, covered, vote, d, pts in found:
+            seen[fruit].append(fid)
+            ref_px[fruit] += px
+            if covered is not None:
+                checked[fruit] += 1
+                confirmed[fruit] += int(covered)
+            votes[fruit].append(vote)
+            if pts is not None:
+                depths[fruit].append(d)
+                points[fruit].append(pts)
     n_windows = slots[slots.fruit_id > 0].groupby("fruit_id").window_id.nunique()
     measured: dict[int, tuple[np.ndarray, dict]] = {}   # fruit -> (its points, measure's result)
     for fruit in ctx.progress(sorted(seen), "measure fruits", total=len(seen)):
