@@ -19,6 +19,7 @@ from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
+from scipy import ndimage
 
 from pipeline.classes import VOID
 from synthetic.scene import BACKGROUND, GREEN, MIXED, PLANT, RED
@@ -83,6 +84,21 @@ def jitter_mask(mask: np.ndarray, max_px: float, rng: np.random.Generator, bias:
     return out
 
 
+Box = tuple[int, int, int, int]
+"""(v0, v1, u0, u1): rows v0..v1-1 and columns u0..u1-1 of an image."""
+
+
+def _grown(sl: tuple[slice, slice], margin: int, h: int, w: int) -> Box:
+    """The box of ndimage.find_objects slices grown by `margin` pixels on every side, inside an h x w image."""
+    return (max(0, sl[0].start - margin), min(h, sl[0].stop + margin), max(0, sl[1].start - margin),
+            min(w, sl[1].stop + margin))
+
+
+def _in(img: np.ndarray, box: Box) -> np.ndarray:
+    """The view of `img` inside `box`."""
+    return img[box[0]:box[1], box[2]:box[3]]
+
+
 def _blob(h: int, w: int, cy: int, cx: int, ay: float, ax: float, angle_deg: float) -> np.ndarray:
     m = np.zeros((h, w), np.uint8)
     cv2.ellipse(m, (int(cx), int(cy)), (max(1, int(round(ax))), max(1, int(round(ay)))), angle_deg, 0, 360, 1, -1)
@@ -96,39 +112,46 @@ def detect(sem: np.ndarray, inst: np.ndarray, depth_m: np.ndarray, sizes: FruitS
     stats = {"visible": 0, "missed": 0, "merged": 0, "confused": 0, "false_pos": 0, "dropped_small": 0}
     ids, areas = np.unique(inst[inst > 0], return_counts=True)
     stats["visible"] = len(ids)
-    masks = {int(i): inst == i for i in ids}
-    segments: list[tuple[np.ndarray, int, float]] = []
+    # each fruit is worked on in its box, grown by the reach of the merge ring and of jitter_mask's crop
+    margin = 3 + int(np.ceil(noise.boundary_px))
+    boxes = {i: _grown(sl, margin, h, w) for i, sl in enumerate(ndimage.find_objects(inst), start=1) if sl}
+    area_of = dict(zip(ids.tolist(), areas.tolist()))
+    segments: list[tuple[Box, np.ndarray, int, float]] = []   # (box, mask inside the box, class, score)
     used: set[int] = set()
     for j in rng.permutation(len(ids)):
         fid, area = int(ids[j]), int(areas[j])
         if fid in used:
             continue
         used.add(fid)
-        mask = masks[fid]
-        z = float(np.median(depth_m[mask])) + 0.5 * float(sizes.diameter_m[fid])
+        box = boxes[fid]
+        crop = _in(inst, box)
+        mask = crop == fid
+        z = float(np.median(_in(depth_m, box)[mask])) + 0.5 * float(sizes.diameter_m[fid])
         full = np.pi / 4 * (sizes.fx * sizes.diameter_m[fid] / z) * (sizes.fy * sizes.length_m[fid] / z)
         vis = min(1.0, area / max(full, 1.0))
         if rng.random() < 1.0 - (1.0 - noise.miss_rate) ** (0.5 + 1.5 * (1.0 - vis)):
             stats["missed"] += 1
             continue
-        klass = int(np.bincount(sem[mask]).argmax())
+        klass = int(np.bincount(_in(sem, box)[mask]).argmax())
         score = rng.uniform(0.75, 0.99)
         if rng.random() < noise.merge_rate:
             ring = cv2.dilate(mask.astype(np.uint8), np.ones((3, 3), np.uint8), iterations=3 + noise.boundary_px) > 0
-            near = [int(n) for n in np.unique(inst[ring & (inst > 0) & ~mask]) if int(n) not in used]
+            near = [int(n) for n in np.unique(crop[ring & (crop > 0) & ~mask]) if int(n) not in used]
             if near:
                 other = near[int(rng.integers(len(near)))]
                 used.add(other)
-                if masks[other].sum() > mask.sum():
-                    klass = int(np.bincount(sem[masks[other]]).argmax())
-                mask = mask | masks[other]
+                box = tuple(f(a, b) for f, a, b in zip((min, max, min, max), box, boxes[other]))
+                crop = _in(inst, box)
+                if area_of[other] > area:
+                    klass = int(np.bincount(_in(sem, box)[crop == other]).argmax())
+                mask = (crop == fid) | (crop == other)
                 score = rng.uniform(0.3, 0.7)
                 stats["merged"] += 1
         if rng.random() < noise.class_confusion_rate and klass in NEIGHBOUR_CLASS:
             klass = int(rng.choice(NEIGHBOUR_CLASS[klass]))
             score = rng.uniform(0.3, 0.7)
             stats["confused"] += 1
-        segments.append((jitter_mask(mask, noise.boundary_px, rng), klass, score))
+        segments.append((box, jitter_mask(mask, noise.boundary_px, rng), klass, score))
     # false positives: fruit-sized blobs on leaves, mostly taken for green fruit
     plant_px = np.flatnonzero((sem.ravel() == PLANT) & (depth_m.ravel() > 0))
     for _ in range(rng.poisson(noise.false_pos_rate)):
@@ -140,7 +163,8 @@ def detect(sem: np.ndarray, inst: np.ndarray, depth_m: np.ndarray, sizes: FruitS
         ax = sizes.fx * rng.uniform(0.02, 0.04) / z
         blob = _blob(h, w, cy, cx, ax * rng.uniform(0.7, 1.4), ax, rng.uniform(0, 180))
         blob = jitter_mask(blob, max(1, noise.boundary_px), rng) & (inst == 0)
-        segments.append((blob, int(rng.choice([GREEN, MIXED, RED], p=[0.6, 0.2, 0.2])), rng.uniform(0.3, 0.7)))
+        segments.append(((0, h, 0, w), blob, int(rng.choice([GREEN, MIXED, RED], p=[0.6, 0.2, 0.2])),
+                         rng.uniform(0.3, 0.7)))
         stats["false_pos"] += 1
 
     out_sem = sem.astype(np.uint8).copy()
@@ -157,14 +181,14 @@ def detect(sem: np.ndarray, inst: np.ndarray, depth_m: np.ndarray, sizes: FruitS
     out_inst = np.zeros((h, w), np.uint16)
     kept: list[tuple[int, float]] = []
     for k in rng.permutation(len(segments)):
-        mask, klass, score = segments[k]
-        mask = mask & (out_inst == 0)
+        box, mask, klass, score = segments[k]
+        mask = mask & (_in(out_inst, box) == 0)
         if mask.sum() < noise.min_area_px:
             stats["dropped_small"] += 1
             continue
         kept.append((klass, score))
-        out_inst[mask] = len(kept)
-        out_sem[mask] = klass
+        _in(out_inst, box)[mask] = len(kept)
+        _in(out_sem, box)[mask] = klass
     # ids carry no meaning from frame to frame: 1..n in random order
     perm = np.concatenate([[0], rng.permutation(len(kept)) + 1]).astype(np.uint16)
     out_inst = perm[out_inst]
