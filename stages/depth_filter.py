@@ -66,7 +66,7 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
         worker thread."""
         depth = read_depth_m(ctx.abspath(fr.depth_path), fr.depth_scale_m)
         near = (depth > 0) & (depth <= cfg.max_depth_m)
-        pos, det, gt_rows = rows_of.get(fr.frame_id), None, []
+        pos, det, rows = rows_of.get(fr.frame_id), None, []
         if pos is not None and isinstance(fr.det_instance_path, str):
             inst = read_label(ctx.abspath(fr.det_instance_path), "detector instance")
             if inst.shape != depth.shape:
@@ -83,8 +83,8 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
                 kept, reasons = verdict(area, frac, cfg)
                 for i, a, f, k, r in zip(ids, area, frac, kept, reasons):
                     cls = np.bincount(sem[inst == i]).argmax()
-                    gt_rows.append((fr.frame_id, int(i), int(cls), int(a), float(f), bool(k), r))
-        return det, gt_rows
+                    rows.append((fr.frame_id, int(i), int(cls), int(a), float(f), bool(k), r))
+        return det, rows
 
     gt_rows = []
     checked = in_order(check, frames.itertuples(index=False), available_cores())

@@ -171,6 +171,7 @@ def row_scores(inputs: dict, gt: GroundTruth, gt_fruits: pd.DataFrame | None, gt
     pf: pd.DataFrame = inputs["panoptic_frames"]
     out: dict[str, float] = {}
     fused = PanopticScore(cfg.min_visible_px)
+
     def score(r) -> PanopticScore:
         """The fused frame r's score (on a worker thread)."""
         g_sem, g_inst, near = gt.load(int(r.frame_id))

@@ -251,6 +251,7 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
     ref_px: dict[int, float] = defaultdict(float)  # pixels with depth, scaled to a BASE_PIXELS image
     checked: dict[int, int] = defaultdict(int)      # fused frames with a detector image, per fruit
     confirmed: dict[int, int] = defaultdict(int)    # ... of them where the detector's segments cover the fruit
+
     def unproject_frame(r) -> tuple[int, list[tuple]]:
         """Fused frame r's fruits (on a worker thread): (frame id, [(fruit, reference pixels with depth, whether
         the detector covers it (None: no detector image), its majority class, its depths, its points)])."""

@@ -274,6 +274,9 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
     pairs = [(int(i), int(di[i])) for i in idx]
     first_error = ""
 
+    def png_name(ci: int) -> str:
+        return f"{cs[ci]}.png"
+
     def store(item: tuple) -> tuple[int, str, float]:
         """Check and write one decoded frame (on a worker thread): (colour index, decode error, share of valid
         depth pixels)."""
@@ -287,8 +290,8 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
                               f"{depth.shape[0]} but colour is {w}x{h}; depth must be aligned to colour (RealSense: "
                               f"the aligned_depth_to_color stream)")
         mm = depth_to_mm(depth)
-        write_png(out_dir / "rgb" / f"{cs[ci]}.png", rgb)
-        write_png(out_dir / "depth" / f"{cs[ci]}.png", mm)
+        write_png(out_dir / "rgb" / png_name(ci), rgb)
+        write_png(out_dir / "depth" / png_name(ci), mm)
         return ci, "", float((mm > 0).mean())
 
     # frames are decoded in the source's order on this thread and encoded on every core
@@ -302,8 +305,8 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
             continue
         if valid == 0:
             ctx.count("frames_without_valid_depth")
-        name = f"{cs[ci]}.png"
-        decoded[ci] = (ctx.relpath("images", f"rgb/{name}"), ctx.relpath("images", f"depth/{name}"), valid)
+        decoded[ci] = (ctx.relpath("images", f"rgb/{png_name(ci)}"), ctx.relpath("images", f"depth/{png_name(ci)}"),
+                       valid)
     order = [i for i in idx if i in decoded]
     if not order:
         raise IngestError(f"{src.describe()}: none of the {len(pairs)} paired frames could be decoded; the first "
