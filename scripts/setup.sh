@@ -36,4 +36,9 @@ fi
 echo "setup: installing the project and its dependencies"
 .venv/bin/python -m pip install -q -e '.[dev]'
 .venv/bin/python -c 'import open3d, torch, rosbags, pycolmap' || { echo "error: dependency import failed" >&2; exit 1; }
+# The fused CPU kernels of the encoding (nerf/csrc) compile here, once (about a minute on 2 cores), and not
+# inside the first window fit of `make all`. Without a usable compiler this warns and the fits use the
+# pure-torch reference; any later change to nerf/csrc rebuilds them on first use.
+echo "setup: building the fused encoding kernels"
+.venv/bin/python -c 'from nerf._ext import load_permuto_ext; print("setup: kernels", "ready" if load_permuto_ext("cpu") else "unavailable: the pure-torch reference is used")'
 echo "setup: done"
