@@ -167,10 +167,16 @@ def shade(scene: S.Scene, p: np.ndarray, normal: np.ndarray, part: np.ndarray, t
 
 
 def _smooth_normals(scene: S.Scene, prim: np.ndarray, uv: np.ndarray) -> np.ndarray:
-    cn = scene.corner_normals[prim]  # [N, 3, 3]
+    """Unit normals [N, 3] at the hits: the triangle's corner normals blended by the barycentric (u, v)."""
+    cn = scene.corner_normals.take(prim, axis=0)  # [N, 3, 3]
     u, v = uv[:, 0:1], uv[:, 1:2]
-    n = (1 - u - v) * cn[:, 0] + u * cn[:, 1] + v * cn[:, 2]
-    return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-8)
+    n = (1 - u - v) * cn[:, 0]
+    n += u * cn[:, 1]
+    n += v * cn[:, 2]
+    sq = n * n
+    length = np.sqrt(sq[:, 0] + sq[:, 1] + sq[:, 2])
+    n /= np.maximum(length, 1e-8)[:, None]
+    return n
 
 
 def render(scene: S.Scene, c2w: np.ndarray, k: np.ndarray, width: int, height: int, supersample: int = 2,
@@ -184,16 +190,26 @@ def render(scene: S.Scene, c2w: np.ndarray, k: np.ndarray, width: int, height: i
         rays = camera_rays(k, width, height, supersample)
     hit = _cast(scene, c2w, rays, nthreads)
     ok = hit["ok"]
-    rgb = np.empty((len(ok), 3), np.float32)
-    rgb[~ok] = SKY_RGB
-    prim = hit["prim"][ok].astype(np.int64)
-    pts = hit["origin"] + hit["dir"][ok] * hit["t"][ok, None]
-    rgb[ok] = shade(scene, pts, _smooth_normals(scene, prim, hit["uv"][ok]), scene.part_of_triangle[prim],
-                    texture_scale)
+    every = bool(ok.all())  # (an enclosed greenhouse: usually every ray hits, and no mask is needed)
+    prim = hit["prim"].astype(np.int64) if every else hit["prim"][ok].astype(np.int64)
+    t, d = (hit["t"], hit["dir"]) if every else (hit["t"][ok], hit["dir"][ok])
+    pts = hit["origin"] + d * t[:, None]
+    part_hit = scene.part_of_triangle[prim]
+    shaded = shade(scene, pts, _smooth_normals(scene, prim, hit["uv"] if every else hit["uv"][ok]), part_hit,
+                   texture_scale)
+    if every:
+        rgb = shaded
+    else:
+        rgb = np.empty((len(ok), 3), np.float32)
+        rgb[~ok] = SKY_RGB
+        rgb[ok] = shaded
     colour = resolve_colour(rgb, width, height, supersample)
     n = width * height
     cok = ok[:n]
-    part = np.where(cok, scene.part_of_triangle[np.where(cok, hit["prim"][:n], 0).astype(np.int64)], 0)
+    if every:
+        part = part_hit[:n]
+    else:
+        part = np.where(cok, scene.part_of_triangle[np.where(cok, hit["prim"][:n], 0).astype(np.int64)], 0)
     return {
         "rgb": np.round(colour * 255).astype(np.uint8),
         "depth": np.where(cok, hit["t"][:n], 0.0).astype(np.float32).reshape(height, width),

@@ -27,26 +27,31 @@ def _table(seed: int) -> np.ndarray:
 
 def value_noise(p: np.ndarray, scale_m: float, seed: int = 0) -> np.ndarray:
     """Smooth noise in [0, 1] with features of size `scale_m`. p [N, 3] metres -> [N] float32."""
-    q = np.asarray(p, np.float32) * np.float32(1.0 / scale_m)
+    q = np.ascontiguousarray(np.asarray(p, np.float32).T) * np.float32(1.0 / scale_m)  # [3, N]: rows contiguous
     fl = np.floor(q)
     f = q - fl
     f = f * f * (np.float32(3) - np.float32(2) * f)
     i = fl.astype(np.int64).astype(np.uint32)  # two's complement wrap keeps negative cells distinct
-    h0 = [i[:, a] * _P[a] for a in range(3)]
-    h1 = [h0[a] + _P[a] for a in range(3)]
+    i *= np.array(_P, np.uint32)[:, None]
+    hx0, hy0, hz0 = i
+    hx1, hy1, hz1 = hx0 + _P[0], hy0 + _P[1], hz0 + _P[2]
+    hxy = [hx0 ^ hy0, hx1 ^ hy0, hx0 ^ hy1, hx1 ^ hy1]   # the x-y part of the hash of the 4 corners of a face
     table = _table(seed)
     shift = np.uint32(32 - _BITS)
+    h = np.empty(q.shape[1], np.uint32)
 
-    def corner(hx: np.ndarray, hy: np.ndarray, hz: np.ndarray) -> np.ndarray:
-        return table[((hx ^ hy ^ hz) * _GOLD) >> shift]
+    def corner(xy: np.ndarray, hz: np.ndarray) -> np.ndarray:
+        np.bitwise_xor(xy, hz, out=h)
+        np.multiply(h, _GOLD, out=h)
+        return table.take(np.right_shift(h, shift, out=h))
 
-    fx, fy, fz = f[:, 0], f[:, 1], f[:, 2]
+    fx, fy, fz = f
     out = []
-    for hz in (h0[2], h1[2]):
-        y0 = corner(h0[0], h0[1], hz)
-        y0 += (corner(h1[0], h0[1], hz) - y0) * fx
-        y1 = corner(h0[0], h1[1], hz)
-        y1 += (corner(h1[0], h1[1], hz) - y1) * fx
+    for hz in (hz0, hz1):
+        y0 = corner(hxy[0], hz)
+        y0 += (corner(hxy[1], hz) - y0) * fx
+        y1 = corner(hxy[2], hz)
+        y1 += (corner(hxy[3], hz) - y1) * fx
         y0 += (y1 - y0) * fy
         out.append(y0)
     return out[0] + (out[1] - out[0]) * fz
