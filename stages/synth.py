@@ -331,9 +331,10 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
 
     def render_frame(i: int) -> dict:
         """Ray-cast frame i and run the simulated detector on it (both on a worker thread; the detector's
-        random stream is frame i's own, so the result does not depend on the thread)."""
+        random stream is frame i's own, so the result does not depend on the thread). The ray cast holds the
+        GIL (Open3D), so it casts on every core while the other render threads wait for it."""
         fr = render.render(sc, cam[i], k, cfg.width, cfg.height, cfg.supersample, cfg.texture_scale,
-                           nthreads=1 if workers > 1 else 2, rays=rays)
+                           nthreads=os.cpu_count() or 1, rays=rays)
         fr["detections"] = detector.detect(fr["semantic"], fr["instance"], fr["depth"], sizes, noise,
                                            stream(cfg, 3, i))
         return fr
@@ -366,7 +367,7 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
             det_writer.frame(stamp, det.semantic, det.instance, det.segments)
             for key, n in det.stats.items():
                 ctx.count(f"detector_{key}", n)
-            views[np.unique(fr["instance"])] += 1
+            views += np.bincount(fr["instance"].ravel(), minlength=n_ids) > 0
             if i in labelled:
                 annotated.append((stamp, fr["semantic"], fr["instance"]))
                 write_png(out / "seg" / f"{stamp}.png", fr["instance"])

@@ -76,11 +76,15 @@ def albedo(scene: S.Scene, p: np.ndarray, part: np.ndarray, texture_scale: float
     """[N, 3] float32 albedo in [0, 1] of world points p [N, 3] on parts `part` [N]."""
     seed, ts = scene.seed, texture_scale
     mat = scene.material[part]
+    # points sorted by material (a stable radix sort of small ints): each material's points are one slice
+    order = np.argsort(mat, kind="stable")
+    ends = np.cumsum(np.bincount(mat, minlength=len(S.MATERIALS)))
+    p_by, part_by = p[order], part[order]
+    param_by = scene.param[part_by]
     out = np.empty((len(p), 3), np.float32)
-    for m in np.unique(mat):
-        sel = np.flatnonzero(mat == m)
-        q, pr = p[sel], part[sel]
-        prm = scene.param[pr]
+    for m in np.flatnonzero(np.diff(ends, prepend=0)):
+        sel = slice(ends[m - 1] if m else 0, ends[m])
+        q, pr, prm = p_by[sel], part_by[sel], param_by[sel]
         if m == S.LEAF:
             loc = _local(scene, pr, q)
             tone = 0.55 * prm[:, 0] + 0.45 * fbm(q, 0.035 * ts, 2, seed + 1)
@@ -119,7 +123,9 @@ def albedo(scene: S.Scene, p: np.ndarray, part: np.ndarray, texture_scale: float
         else:  # POST
             a = np.array([0.58, 0.60, 0.62], np.float32) * (0.8 + 0.3 * fbm(q, 0.05 * ts, 3, seed + 12))[:, None]
         out[sel] = a
-    return np.clip(out, 0.0, 1.0)
+    albedo_ = np.empty_like(out)
+    albedo_[order] = out
+    return np.clip(albedo_, 0.0, 1.0, out=albedo_)
 
 
 def _fruit_albedo(scene: S.Scene, q: np.ndarray, pr: np.ndarray, prm: np.ndarray, ts: float) -> np.ndarray:
