@@ -81,7 +81,7 @@ def albedo(scene: S.Scene, p: np.ndarray, part: np.ndarray, texture_scale: float
     ends = np.cumsum(np.bincount(mat, minlength=len(S.MATERIALS)))
     p_by, part_by = p[order], part[order]
     param_by = scene.param[part_by]
-    out = np.empty((len(p), 3), np.float32)
+    a_by = np.empty((len(p), 3), np.float32)
     for m in np.flatnonzero(np.diff(ends, prepend=0)):
         sel = slice(ends[m - 1] if m else 0, ends[m])
         q, pr, prm = p_by[sel], part_by[sel], param_by[sel]
@@ -122,10 +122,10 @@ def albedo(scene: S.Scene, p: np.ndarray, part: np.ndarray, texture_scale: float
             a[rust] *= np.array([0.8, 0.6, 0.45], np.float32)
         else:  # POST
             a = np.array([0.58, 0.60, 0.62], np.float32) * (0.8 + 0.3 * fbm(q, 0.05 * ts, 3, seed + 12))[:, None]
-        out[sel] = a
-    albedo_ = np.empty_like(out)
-    albedo_[order] = out
-    return np.clip(albedo_, 0.0, 1.0, out=albedo_)
+        a_by[sel] = a
+    out = np.empty_like(a_by)
+    out[order] = a_by
+    return np.clip(out, 0.0, 1.0, out=out)
 
 
 def _fruit_albedo(scene: S.Scene, q: np.ndarray, pr: np.ndarray, prm: np.ndarray, ts: float) -> np.ndarray:
