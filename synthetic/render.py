@@ -78,12 +78,13 @@ def albedo(scene: S.Scene, p: np.ndarray, part: np.ndarray, texture_scale: float
     mat = scene.material[part]
     # points sorted by material (a stable radix sort of small ints): each material's points are one slice
     order = np.argsort(mat, kind="stable")
-    ends = np.cumsum(np.bincount(mat, minlength=len(S.MATERIALS)))
+    counts = np.bincount(mat, minlength=len(S.MATERIALS))
+    ends = np.cumsum(counts)
     p_by, part_by = p[order], part[order]
     param_by = scene.param[part_by]
     a_by = np.empty((len(p), 3), np.float32)
-    for m in np.flatnonzero(np.diff(ends, prepend=0)):
-        sel = slice(ends[m - 1] if m else 0, ends[m])
+    for m in np.flatnonzero(counts):
+        sel = slice(ends[m] - counts[m], ends[m])
         q, pr, prm = p_by[sel], part_by[sel], param_by[sel]
         if m == S.LEAF:
             loc = _local(scene, pr, q)
@@ -196,26 +197,18 @@ def render(scene: S.Scene, c2w: np.ndarray, k: np.ndarray, width: int, height: i
         rays = camera_rays(k, width, height, supersample)
     hit = _cast(scene, c2w, rays, nthreads)
     ok = hit["ok"]
-    every = bool(ok.all())  # (an enclosed greenhouse: usually every ray hits, and no mask is needed)
-    prim = hit["prim"].astype(np.int64) if every else hit["prim"][ok].astype(np.int64)
-    t, d = (hit["t"], hit["dir"]) if every else (hit["t"][ok], hit["dir"][ok])
-    pts = hit["origin"] + d * t[:, None]
+    on = slice(None) if ok.all() else ok  # (an enclosed greenhouse: usually every ray hits, and no copy is needed)
+    prim = hit["prim"][on].astype(np.int64)
+    pts = hit["origin"] + hit["dir"][on] * hit["t"][on, None]
     part_hit = scene.part_of_triangle[prim]
-    shaded = shade(scene, pts, _smooth_normals(scene, prim, hit["uv"] if every else hit["uv"][ok]), part_hit,
-                   texture_scale)
-    if every:
-        rgb = shaded
-    else:
-        rgb = np.empty((len(ok), 3), np.float32)
-        rgb[~ok] = SKY_RGB
-        rgb[ok] = shaded
+    part = np.zeros(len(ok), part_hit.dtype)   # (0 where the ray hits nothing)
+    part[on] = part_hit
+    rgb = np.empty((len(ok), 3), np.float32)
+    rgb[~ok] = SKY_RGB
+    rgb[on] = shade(scene, pts, _smooth_normals(scene, prim, hit["uv"][on]), part_hit, texture_scale)
     colour = resolve_colour(rgb, width, height, supersample)
     n = width * height
-    cok = ok[:n]
-    if every:
-        part = part_hit[:n]
-    else:
-        part = np.where(cok, scene.part_of_triangle[np.where(cok, hit["prim"][:n], 0).astype(np.int64)], 0)
+    cok, part = ok[:n], part[:n]
     return {
         "rgb": np.round(colour * 255).astype(np.uint8),
         "depth": np.where(cok, hit["t"][:n], 0.0).astype(np.float32).reshape(height, width),

@@ -16,7 +16,7 @@ from functools import lru_cache
 import numpy as np
 
 _BITS = 16
-_P = (np.uint32(73856093), np.uint32(19349663), np.uint32(83492791))
+_P = np.array([73856093, 19349663, 83492791], np.uint32)
 _GOLD = np.uint32(2654435761)
 
 
@@ -32,7 +32,7 @@ def value_noise(p: np.ndarray, scale_m: float, seed: int = 0) -> np.ndarray:
     f = q - fl
     f = f * f * (np.float32(3) - np.float32(2) * f)
     i = fl.astype(np.int64).astype(np.uint32)  # two's complement wrap keeps negative cells distinct
-    i *= np.array(_P, np.uint32)[:, None]
+    i *= _P[:, None]
     hx0, hy0, hz0 = i
     hx1, hy1, hz1 = hx0 + _P[0], hy0 + _P[1], hz0 + _P[2]
     hxy = [hx0 ^ hy0, hx1 ^ hy0, hx0 ^ hy1, hx1 ^ hy1]   # the x-y part of the hash of the 4 corners of a face
