@@ -20,7 +20,12 @@ validation frame, and its points (STAGE_POINTS) are cheaper variants of those se
 marching step, earlier termination. It writes `pareto_stage.parquet` and `pareto_stage.png`: at 1280x720
 (`--seq synth_bup20 --window 0`) this is the scale bench the step budget is chosen on.
 
+`--fronts LABEL=PARQUET ...` fits nothing: it puts the points of earlier runs (the same window, e.g. the old and
+the new code) in one figure, each run with its front of whole minutes per window (fits plus validation renders)
+against PSNR and against PQ, into `pareto_fronts.parquet` and `pareto_fronts.png`.
+
     pag bench pareto [--seq synth_row] [--window 1] [--quick | --long | --stage] [--val-frames N]
+    pag bench pareto --fronts old=OLD/pareto_stage.parquet new=NEW/pareto_stage.parquet [--out DIR]
 """
 from __future__ import annotations
 
@@ -173,6 +178,48 @@ def plot(df: pd.DataFrame, path: Path) -> None:
     plt.close(fig)
 
 
+def window_minutes(df: pd.DataFrame) -> np.ndarray:
+    """A point's whole cost per window (minutes): colour and panoptic fits plus its validation renders."""
+    return (df.fit_min_per_window + df.render_s_per_image * df.val_frames / 60.0).to_numpy(np.float64)
+
+
+def fronts(runs: dict[str, pd.DataFrame]) -> pd.DataFrame:
+    """The points of several runs of the bench (label -> its parquet), each with its whole window minutes
+    (window_minutes) and whether it is on its own run's front of those minutes against PSNR and against PQ."""
+    out = []
+    for label, df in runs.items():
+        df = df.assign(code=label, window_min=window_minutes(df))
+        df["front_psnr"] = pareto_front(df.window_min.to_numpy(), df.psnr.to_numpy())
+        df["front_pq"] = pareto_front(df.window_min.to_numpy(), df.pq.to_numpy())
+        out.append(df)
+    return pd.concat(out, ignore_index=True)
+
+
+def plot_fronts(df: pd.DataFrame, path: Path) -> None:
+    """Each run's points and Pareto front (fronts()) in one figure per metric: where a front moved."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    colours = ["#999", "#c44", "#48c", "#4a4"]
+    fig, axes = plt.subplots(1, 2, figsize=(12, 4.5))
+    for ax, metric, label in ((axes[0], "psnr", "val PSNR (dB)"), (axes[1], "pq", "PQ")):
+        for colour, (code, run_df) in zip(colours * 4, df.groupby("code", sort=False)):
+            front = run_df[run_df[f"front_{metric}"]].sort_values("window_min")
+            ax.plot(front.window_min, front[metric], "-", color=colour, lw=1.5, label=f"{code}: front")
+            ax.scatter(run_df.window_min, run_df[metric], c=colour, s=28)
+            for r in run_df.itertuples(index=False):
+                ax.annotate(r.point, (r.window_min, getattr(r, metric)), fontsize=6, color=colour, xytext=(4, 3),
+                            textcoords="offset points")
+        ax.set_xlabel("minutes per window (colour + panoptic fit + validation renders)")
+        ax.set_ylabel(label)
+        ax.legend(fontsize=7, loc="lower right")
+    fig.suptitle(f"{df.seq.iloc[0]} window {df.window.iloc[0]}: Pareto fronts", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="pag bench pareto", description=__doc__.split("\n")[0])
     p.add_argument("--seq", default="synth_row")
@@ -186,7 +233,24 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--data-root", type=Path, default=Path("data"))
     p.add_argument("--out", type=Path, default=Path("data/bench"))
+    p.add_argument("--fronts", nargs="+", default=[], metavar="LABEL=PARQUET",
+                   help="no fits: plot the fronts of earlier runs (e.g. old=old/pareto_stage.parquet) together")
     a = p.parse_args(argv)
+    if a.fronts:
+        runs = {}
+        for item in a.fronts:
+            label, sep, path = item.partition("=")
+            if not sep or not label:
+                p.error(f"--fronts takes LABEL=PARQUET, got {item!r}")
+            runs[label] = pd.read_parquet(path)
+        df = fronts(runs)
+        a.out.mkdir(parents=True, exist_ok=True)
+        write_parquet(df, a.out / "pareto_fronts.parquet")
+        plot_fronts(df, a.out / "pareto_fronts.png")
+        cols = ["code", "point", "window_min", "fit_min_per_window", "render_s_per_image", "psnr", "pq",
+                "count_pred", "count_gt", "front_psnr", "front_pq"]
+        print(df[cols].to_string(index=False, float_format=lambda v: f"{v:.3f}"))
+        return 0
     mode = "quick" if a.quick else "long" if a.long else "stage" if a.stage else "default"
     df = run(a.seq, a.window, mode, a.val_frames, a.threads, a.data_root, a.out)
     cols = ["point", "n_levels", "log2_capacity", "colour_steps", "rays_per_step", "image_scale", "cone_angle",

@@ -1,5 +1,6 @@
 import numpy as np
 import pandas as pd
+import pytest
 
 from bench.compare import markdown, summary
 from bench.pareto import pareto_front
@@ -99,3 +100,27 @@ def test_stage_points_vary_only_the_cost_of_nerf_fit_settings():
     assert STAGE_POINTS[0][2] == {} and MODES["stage"]["val_frames"] == 0    # the reference: the stage unchanged
     for _, preset_name, change in STAGE_POINTS[1:]:
         assert preset_name == "" and set(change) <= {"steps_factor", "step_factor", "train_early_stop"}
+
+
+def test_fronts_of_two_runs_count_renders_in_the_window_minutes_and_plot(tmp_path):
+    from bench.pareto import main
+
+    def run(fit, render_s, psnr, pq):
+        return pd.DataFrame({"point": ["a", "b", "c"], "fit_min_per_window": fit, "render_s_per_image": render_s,
+                             "val_frames": 30, "psnr": psnr, "pq": pq, "count_pred": 18.0, "count_gt": 18.0,
+                             "seq": "s", "window": 0})
+
+    old = run([2.0, 1.5, 1.0], [2.0, 2.0, 2.0], [28.7, 28.0, 27.4], [.90, .89, .91])
+    new = run([1.5, 1.1, 0.8], [1.0, 1.0, 1.0], [28.7, 28.0, 27.4], [.90, .89, .91])
+    old.to_parquet(tmp_path / "old.parquet")
+    new.to_parquet(tmp_path / "new.parquet")
+    assert main(["--fronts", f"old={tmp_path / 'old.parquet'}", f"new={tmp_path / 'new.parquet'}",
+                 "--out", str(tmp_path / "out")]) == 0
+    df = pd.read_parquet(tmp_path / "out" / "pareto_fronts.parquet")
+    np.testing.assert_allclose(df[df.code == "old"].window_min, [3.0, 2.5, 2.0])  # 30 renders of 2 s = 1 min
+    np.testing.assert_allclose(df[df.code == "new"].window_min, [2.0, 1.6, 1.3])
+    assert df[df.code == "old"].front_pq.tolist() == [False, False, True]  # c is cheapest and best in PQ
+    assert df.front_psnr.all()
+    assert (tmp_path / "out" / "pareto_fronts.png").stat().st_size > 10_000
+    with pytest.raises(SystemExit):
+        main(["--fronts", str(tmp_path / "old.parquet")])  # no label
