@@ -242,6 +242,8 @@ def main(argv: list[str] | None = None) -> int:
             label, sep, path = item.partition("=")
             if not sep or not label:
                 p.error(f"--fronts takes LABEL=PARQUET, got {item!r}")
+            if not Path(path).is_file():
+                p.error(f"--fronts {label}: no file {path} (a pareto or pareto_stage parquet of an earlier run)")
             runs[label] = pd.read_parquet(path)
         df = fronts(runs)
         a.out.mkdir(parents=True, exist_ok=True)

@@ -124,3 +124,5 @@ def test_fronts_of_two_runs_count_renders_in_the_window_minutes_and_plot(tmp_pat
     assert (tmp_path / "out" / "pareto_fronts.png").stat().st_size > 10_000
     with pytest.raises(SystemExit):
         main(["--fronts", str(tmp_path / "old.parquet")])  # no label
+    with pytest.raises(SystemExit):
+        main(["--fronts", f"old={tmp_path / 'missing.parquet'}"])
