@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import argparse
 from dataclasses import replace
+from itertools import cycle
 from pathlib import Path
 
 import cv2
@@ -91,6 +92,12 @@ def downscale(data: WindowData, labels: WindowLabels, gts: list, scale: float
     return small, lab, [(near(gs), near(gi)) for gs, gi in gts]
 
 
+def with_fronts(df: pd.DataFrame, cost: str) -> pd.DataFrame:
+    """df with front_psnr / front_pq: whether each point is on the front of column `cost` against PSNR / PQ."""
+    return df.assign(front_psnr=pareto_front(df[cost].to_numpy(), df.psnr.to_numpy()),
+                     front_pq=pareto_front(df[cost].to_numpy(), df.pq.to_numpy()))
+
+
 def pareto_front(cost: np.ndarray, quality: np.ndarray) -> np.ndarray:
     """Points no other point dominates (cost <= and quality >=, one of them strictly). NaN quality is never
     on the front. Example: cost (1, 2, 3), quality (10, 9, 12) -> (True, False, True)."""
@@ -143,9 +150,7 @@ def run(seq: str = "synth_row", window: int = 1, mode: str = "default", val_fram
                      "val_frames": int((~data.is_train).sum()), "settings": settings, "seq": seq, "window": window})
         print(f"{name}: fit {r['fit_min_per_window']:.2f} min, render {r['render_s_per_image']:.1f} s, "
               f"PSNR {r['psnr']:.2f}, PQ {r['pq']:.3f}, count {r['count_pred']:.0f}/{r['count_gt']:.0f}", flush=True)
-    df = pd.DataFrame(rows)
-    df["front_psnr"] = pareto_front(df.fit_min_per_window.to_numpy(), df.psnr.to_numpy())
-    df["front_pq"] = pareto_front(df.fit_min_per_window.to_numpy(), df.pq.to_numpy())
+    df = with_fronts(pd.DataFrame(rows), "fit_min_per_window")
     out_dir.mkdir(parents=True, exist_ok=True)
     name = "pareto_stage" if mode == "stage" else "pareto"
     write_parquet(df, out_dir / f"{name}.parquet")
@@ -153,13 +158,26 @@ def run(seq: str = "synth_row", window: int = 1, mode: str = "default", val_fram
     return df
 
 
-def plot(df: pd.DataFrame, path: Path) -> None:
+def metric_figure(path: Path, title: str, xlabel: str, draw) -> None:
+    """One panel for val PSNR and one for PQ, each filled by draw(ax, metric), saved to `path`."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     fig, axes = plt.subplots(1, 2, figsize=(12, 4.5))
     for ax, metric, label in ((axes[0], "psnr", "val PSNR (dB)"), (axes[1], "pq", "PQ")):
+        draw(ax, metric)
+        ax.set_xlabel(xlabel)
+        ax.set_ylabel(label)
+        ax.legend(fontsize=7, loc="lower right")
+    fig.suptitle(title, fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def plot(df: pd.DataFrame, path: Path) -> None:
+    def draw(ax, metric: str) -> None:
         front = df[df[f"front_{metric}"]].sort_values("fit_min_per_window")
         ax.plot(front.fit_min_per_window, front[metric], "-", color="#c44", lw=1.5, label="Pareto front", zorder=1)
         ax.scatter(df.fit_min_per_window, df[metric], c="#48c", s=30, zorder=2, label="points")
@@ -169,13 +187,9 @@ def plot(df: pd.DataFrame, path: Path) -> None:
         for r in df.itertuples(index=False):
             ax.annotate(f"{r.point}\n{r.render_s_per_image:.1f} s/img", (r.fit_min_per_window, getattr(r, metric)),
                         fontsize=6.5, xytext=(4, 3), textcoords="offset points")
-        ax.set_xlabel("fit time per window (min, colour + panoptic)")
-        ax.set_ylabel(label)
-        ax.legend(fontsize=7, loc="lower right")
-    fig.suptitle(f"{df.seq.iloc[0]} window {df.window.iloc[0]}, {df.settings.iloc[0]}", fontsize=9)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+
+    metric_figure(path, f"{df.seq.iloc[0]} window {df.window.iloc[0]}, {df.settings.iloc[0]}",
+                  "fit time per window (min, colour + panoptic)", draw)
 
 
 def window_minutes(df: pd.DataFrame) -> np.ndarray:
@@ -186,38 +200,23 @@ def window_minutes(df: pd.DataFrame) -> np.ndarray:
 def fronts(runs: dict[str, pd.DataFrame]) -> pd.DataFrame:
     """The points of several runs of the bench (label -> its parquet), each with its whole window minutes
     (window_minutes) and whether it is on its own run's front of those minutes against PSNR and against PQ."""
-    out = []
-    for label, df in runs.items():
-        df = df.assign(code=label, window_min=window_minutes(df))
-        df["front_psnr"] = pareto_front(df.window_min.to_numpy(), df.psnr.to_numpy())
-        df["front_pq"] = pareto_front(df.window_min.to_numpy(), df.pq.to_numpy())
-        out.append(df)
-    return pd.concat(out, ignore_index=True)
+    return pd.concat([with_fronts(df.assign(code=label, window_min=window_minutes(df)), "window_min")
+                      for label, df in runs.items()], ignore_index=True)
 
 
 def plot_fronts(df: pd.DataFrame, path: Path) -> None:
     """Each run's points and Pareto front (fronts()) in one figure per metric: where a front moved."""
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    colours = ["#999", "#c44", "#48c", "#4a4"]
-    fig, axes = plt.subplots(1, 2, figsize=(12, 4.5))
-    for ax, metric, label in ((axes[0], "psnr", "val PSNR (dB)"), (axes[1], "pq", "PQ")):
-        for colour, (code, run_df) in zip(colours * 4, df.groupby("code", sort=False)):
+    def draw(ax, metric: str) -> None:
+        for colour, (code, run_df) in zip(cycle(["#999", "#c44", "#48c", "#4a4"]), df.groupby("code", sort=False)):
             front = run_df[run_df[f"front_{metric}"]].sort_values("window_min")
             ax.plot(front.window_min, front[metric], "-", color=colour, lw=1.5, label=f"{code}: front")
             ax.scatter(run_df.window_min, run_df[metric], c=colour, s=28)
             for r in run_df.itertuples(index=False):
                 ax.annotate(r.point, (r.window_min, getattr(r, metric)), fontsize=6, color=colour, xytext=(4, 3),
                             textcoords="offset points")
-        ax.set_xlabel("minutes per window (colour + panoptic fit + validation renders)")
-        ax.set_ylabel(label)
-        ax.legend(fontsize=7, loc="lower right")
-    fig.suptitle(f"{df.seq.iloc[0]} window {df.window.iloc[0]}: Pareto fronts", fontsize=9)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+
+    metric_figure(path, f"{df.seq.iloc[0]} window {df.window.iloc[0]}: Pareto fronts",
+                  "minutes per window (colour + panoptic fit + validation renders)", draw)
 
 
 def main(argv: list[str] | None = None) -> int:
