@@ -9,13 +9,16 @@ from __future__ import annotations
 import copy
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, fields, replace
+from pathlib import Path
 
 import numpy as np
+import torch
 
 from nerf.config import NerfConfig, PanopticConfig
 from nerf.depth_poses import DepthPoses, depth_initial_poses
 from nerf.memory import release_freed
+from nerf.model import NerfModel
 from nerf.panoptic.complete import complete_instances
 from nerf.panoptic.labels import WindowLabels
 from nerf.panoptic.render import render_panoptic
@@ -43,6 +46,9 @@ class ColourPhase:
     depth_info: dict
     """what depth_initial_poses did: depth_poses, odometry_scale, depth_pose_votes, depth_pose_note,
     icp_max_depth_m."""
+    rng_state: torch.Tensor
+    """torch's random state when the colour phase ended: the panoptic phase starts from it (its heads' first
+    weights), in this process or another, and so does every variant that reuses the colour phase."""
 
 
 @dataclass
@@ -78,7 +84,29 @@ def fit_colour(data: WindowData, cfg: NerfConfig, depth_poses: DepthPoses = "off
         res = fit_window(fitted, cfg, device=device, render_val=False, progress=progress)
     except Exception as err:
         raise RuntimeError(f"{name}: {err}") from err
-    return ColourPhase(cfg, depth_poses, fitted, res, depth_info)
+    return ColourPhase(cfg, depth_poses, fitted, res, depth_info, torch.get_rng_state())
+
+
+def save_colour(colour: ColourPhase, path: Path) -> None:
+    """Write a colour phase to `path` without the window's images and depth (load_colour takes them again):
+    the model's checkpoint state, the depth-corrected poses and the fit's record."""
+    record = {f.name: getattr(colour.result, f.name) for f in fields(colour.result)
+              if f.name not in ("model", "renders")}
+    torch.save({"cfg": colour.cfg, "depth_poses": colour.depth_poses, "poses_c2w": colour.data.poses_c2w,
+                "depth_info": colour.depth_info, "rng_state": colour.rng_state, "model": colour.result.model.state(),
+                "result": record}, path)
+
+
+def load_colour(path: Path, data: WindowData, device: str = "cpu") -> ColourPhase:
+    """The colour phase save_colour wrote for window `data` (the window as loaded, before the depth correction):
+    a panoptic phase from it fits as from the colour phase in memory."""
+    saved = torch.load(path, map_location=device, weights_only=False)
+    if len(saved["poses_c2w"]) != len(data.poses_c2w):
+        raise ValueError(f"{path}: a colour phase of {len(saved['poses_c2w'])} frames, the window has "
+                         f"{len(data.poses_c2w)}")
+    result = FitResult(NerfModel.from_state(saved["model"], device), **saved["result"])
+    return ColourPhase(saved["cfg"], saved["depth_poses"], replace(data, poses_c2w=saved["poses_c2w"]), result,
+                       saved["depth_info"], saved["rng_state"])
 
 
 def fit_panoptic_window(data: WindowData, labels: WindowLabels | Callable[[], WindowLabels] | None,
@@ -118,6 +146,7 @@ def fit_panoptic_window(data: WindowData, labels: WindowLabels | Callable[[], Wi
         window_labels = labels() if callable(labels) else labels
         if window_labels is None:
             raise ValueError(f"{name}: the panoptic phase needs the detector's labels of the window, got None")
+        torch.set_rng_state(colour.rng_state)
         try:
             pan = fit_panoptic(res.model, window_labels, fitted.is_train, fitted.depths, panoptic, seed=cfg.seed,
                                progress=lambda s, n, info: report(s, n, {"phase": "panoptic step", **info}))

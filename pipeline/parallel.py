@@ -268,15 +268,26 @@ def task_threads(threads_per_worker: int, n_workers: int) -> int:
     return max(1, (os.cpu_count() or 1) // max(1, n_workers))
 
 
+def own_cluster(scheduler: str | None) -> bool:
+    """Whether map_tasks with this scheduler starts a local cluster of its own (no scheduler given, outside a
+    shared_cluster block): only then does it control which task runs when."""
+    return scheduler is None and _SHARED is None
+
+
 def map_tasks(fn: Callable[[Any], Any], payloads: dict[str, Any], n_workers: int = 0, threads_per_worker: int = 0,
               scheduler: str | None = None, show_progress: bool = True, desc: str = "task",
-              label: str | None = None, progress_interval_s: float = 2.0, idle_threads: bool = False
-              ) -> dict[str, TaskOutcome]:
+              label: str | None = None, progress_interval_s: float = 2.0, idle_threads: bool = False,
+              then: Callable[[Any], Any] | None = None) -> dict[str, TaskOutcome]:
     """Run fn(payload) for every payload; returns outcomes by key. One task per worker at a time.
     Progress of task k is shown as f"{label or desc} {k}".
     idle_threads: on a local cluster this call starts (no scheduler, no shared cluster), once fewer tasks are
     left than workers, the running tasks share the idle workers' threads (taken when they next report
-    progress). Their results then depend on when that happened, to floating-point noise."""
+    progress). Their results then depend on when that happened, to floating-point noise.
+    then: a second part of every task, run as a task of its own: the outcome of k is then(fn(payload k)).
+    Parts are then submitted one per worker at a time (so n_workers should be the cluster's size: a cluster
+    of this call's own, see own_cluster), every first part before any second part. With three tasks on two
+    workers, the third task's first part runs beside the second parts of the other two, not alone.
+    fn's result travels through this process, so it should be small (a path, not a model)."""
     from distributed import Queue, Variable, as_completed
 
     n_workers = n_workers or default_workers(len(payloads))
@@ -291,8 +302,21 @@ def map_tasks(fn: Callable[[Any], Any], payloads: dict[str, Any], n_workers: int
         idle = Variable(idle_name, client=client) if share else None
         if idle is not None:
             idle.set(0)
-        futures = {client.submit(_run_task, fn, p, queue_name, threads, idle_name,
-                                 key=f"{desc}-{k}-{uuid.uuid4().hex[:6]}", pure=False): k for k, p in payloads.items()}
+        queued = deque((fn, k, p) for k, p in payloads.items())   # (part, key, its input) not yet submitted
+        limit = n_workers if then is not None else len(payloads)
+        running: dict[Any, str] = {}   # future -> task key
+        first_part: dict[str, tuple[float, int]] = {}   # key -> seconds and threads of a finished first part
+        pending = as_completed()
+
+        def submit_queued() -> None:
+            while queued and len(running) < limit:
+                part, k, x = queued.popleft()
+                fut = client.submit(_run_task, part, x, queue_name, threads, idle_name,
+                                    key=f"{desc}-{k}-{uuid.uuid4().hex[:6]}", pure=False)
+                running[fut] = k
+                pending.add(fut)
+
+        submit_queued()
         bars = {k: progress.Tracker(f"{label or desc} {k}", None, enabled=show_progress, interval_s=progress_interval_s,
                                     position=i) for i, k in enumerate(payloads)}
 
@@ -307,25 +331,31 @@ def map_tasks(fn: Callable[[Any], Any], payloads: dict[str, Any], n_workers: int
                     info = dict(info)
                     bar.update(done, total, str(info.pop("phase", "step")), info)
 
-        pending = as_completed(list(futures))
         while True:
             drain()
             finished = pending.next_batch(block=False) if not pending.is_empty() else []
             for fut in finished:
-                key = futures[fut]
+                key = running.pop(fut)
                 try:
                     result, seconds, worker, used = fut.result()
-                    outcomes[key] = TaskOutcome(key, result=result, seconds=seconds, worker=worker, threads=used)
+                    if then is not None and key not in first_part:
+                        first_part[key] = (seconds, used)
+                        queued.append((then, key, result))   # behind every first part still queued
+                        continue
+                    before, threads_before = first_part.get(key, (0.0, 0))
+                    outcomes[key] = TaskOutcome(key, result=result, seconds=before + seconds, worker=worker,
+                                                threads=max(used, threads_before))
                 except Exception as err:  # keep going: the other tasks finish
                     outcomes[key] = TaskOutcome(key, error=err)
                 drain()  # the task's last messages before its end line
                 o = outcomes[key]
                 bars[key].finish(f"done in {o.seconds:.1f} s" if o.error is None else
                                  f"failed: {str(o.error).splitlines()[0] if str(o.error) else type(o.error).__name__}")
-            if pending.is_empty() and len(outcomes) == len(futures):
+            submit_queued()
+            if pending.is_empty() and len(outcomes) == len(payloads):
                 break
             if finished and idle is not None:
-                left = len(futures) - len(outcomes)
+                left = len(payloads) - len(outcomes)
                 idle.set(idle_slots(n_workers, left))
             time.sleep(0.3)
         drain()

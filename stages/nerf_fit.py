@@ -17,6 +17,7 @@ import schemas
 from nerf.config import NerfConfig, NerfOverrides, PanopticConfig, preset, set_fields
 from nerf.depth_poses import DepthPoses
 from nerf.geometry import pose_txyzq, rotation_angle_deg
+from nerf.memory import release_freed
 from pipeline import io, parallel, progress, resources
 from pipeline.stage import StageContext
 from rowmap import renders as render_files
@@ -94,24 +95,66 @@ def window_payload(wid: int, w: pd.DataFrame, cfg: Config, mcfg: NerfConfig, dev
 
 def fit_one(payload: dict) -> dict:
     """Runs in a Dask worker: load the window, fit it (nerf/fit.py), write checkpoint and renders, return rows."""
+    data, measured = _start(payload)
+    return _finish(payload, data, None, measured)
+
+
+def fit_colour_part(payload: dict) -> dict:
+    """The first part of fit_one as a task of its own: the window's colour phase, written to a scratch file
+    in the output folder; returns the payload for fit_rest_part."""
+    from nerf.fit import fit_colour, save_colour
+
+    data, measured = _start(payload)
+    wid, key = payload["window_id"], str(payload["window_id"])
+    colour = fit_colour(data, payload["cfg"], payload["depth_poses"], payload["device"],
+                        lambda s, n, info: parallel.report(key, s, n, **info), f"window {wid}",
+                        payload["icp_max_depth_m"])
+    path = Path(payload["out_dir"]) / COLOUR_SCRATCH / f"window_{wid:03d}.pt"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    save_colour(colour, path)
+    return {**payload, "colour_path": str(path), "colour_peak_mb": resources.own_peak_mb() if measured else np.nan}
+
+
+def fit_rest_part(payload: dict) -> dict:
+    """The second part of fit_one as a task of its own: the rest of the window's fit from the colour phase
+    fit_colour_part wrote (whose file it removes), its checkpoint, renders and rows."""
+    from nerf.fit import load_colour
+
+    data, measured = _start(payload)
+    path = Path(payload["colour_path"])
+    colour = load_colour(path, data, payload["device"])
+    path.unlink()
+    return _finish(payload, data, colour, measured)
+
+
+COLOUR_SCRATCH = ".colour_phases"
+"""Folder in the nerf output where fit_colour_part leaves each window's colour phase for fit_rest_part."""
+
+
+def _start(payload: dict):
+    """A task's start: the worker's freed heap handed back, its peak memory reset; the window's frames loaded."""
+    release_freed()  # a worker fits window after window: the last one's freed heap is not carried into this one
+    measured = resources.reset_own_peak()
+    frames = pd.DataFrame(payload["frames"])
+    parallel.report(str(payload["window_id"]), 0, len(frames), phase="load frames")
+    return load_window(frames, Path(payload["data_root"])), measured
+
+
+def _finish(payload: dict, data, colour, measured: bool) -> dict:
+    """The window's fit from its colour phase (None: fitted here too), then its checkpoint, renders and rows."""
     import torch
 
     from nerf.fit import fit_panoptic_window
-    from nerf.memory import release_freed
 
-    release_freed()  # a worker fits window after window: the last one's freed heap is not carried into this one
-    measured = resources.reset_own_peak()
     wid, out_dir, data_root = payload["window_id"], Path(payload["out_dir"]), Path(payload["data_root"])
     frames = pd.DataFrame(payload["frames"])
     key = str(wid)
-    parallel.report(key, 0, len(frames), phase="load frames")
-    data = load_window(frames, data_root)
     detections = pd.DataFrame(payload["detections"]) if payload["detections"] else None
     fit = fit_panoptic_window(data, lambda: load_labels(frames, detections, data_root), payload["cfg"],
                               payload["panoptic"], depth_poses=payload["depth_poses"],
                               render_scale=payload["render_scale"], device=payload["device"],
                               progress=lambda s, n, info: parallel.report(key, s, n, **info), name=f"window {wid}",
-                              icp_max_depth_m=payload["icp_max_depth_m"])
+                              icp_max_depth_m=payload["icp_max_depth_m"], colour=colour)
     res, pan = fit.colour, fit.panoptic
     name = f"window_{wid:03d}"
     resume = Path(payload["resume_dir"]) if payload.get("resume_dir") else None
@@ -147,7 +190,8 @@ def fit_one(payload: dict) -> dict:
                "samples_per_ray": res.samples_per_ray,
                "val_psnr": float(np.mean(list(res.val_psnr.values()))) if res.val_psnr else float("nan"),
                "train_psnr": res.train_psnr, "threads": torch.get_num_threads(),
-               "peak_rss_mb": resources.own_peak_mb() if measured else float("nan"),
+               "peak_rss_mb": float(np.fmax(resources.own_peak_mb() if measured else np.nan,   # over both parts
+                                            payload.get("colour_peak_mb", np.nan))),
                "panoptic_steps": pan.steps if pan else 0, "panoptic_fit_s": pan.fit_s if pan else 0.0,
                "panoptic_params": pan.params if pan else 0,
                "panoptic_instances": bool(pan is not None and pan.cfg.instances), "n_slots": pan.n_slots if pan else 0,
@@ -242,11 +286,20 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
                                  f"code, config and inputs)")
     todo = {k: p for k, p in payloads.items() if k not in outcomes}
     if todo:
-        outcomes.update(parallel.map_tasks(fit_one, todo, n_workers=min(n_workers, len(todo)),
-                                           threads_per_worker=threads, scheduler=ctx.scheduler,
-                                           show_progress=ctx.show_progress, desc="window", label="nerf_fit window",
-                                           progress_interval_s=ctx.progress_interval_s,
-                                           idle_threads=cfg.threads_per_worker == 0))
+        # on a cluster of the stage's own where the last round of windows would leave a worker idle (3 windows
+        # on 2 workers): each window's colour phase and the rest of its fit are two tasks, every colour phase
+        # first, so the last window's colour phase runs beside the others' panoptic phases, not alone
+        split = parallel.own_cluster(ctx.scheduler) and len(todo) > n_workers > 1 and len(todo) % n_workers > 0
+        try:
+            outcomes.update(parallel.map_tasks(fit_colour_part if split else fit_one, todo,
+                                               n_workers=min(n_workers, len(todo)), threads_per_worker=threads,
+                                               scheduler=ctx.scheduler, show_progress=ctx.show_progress,
+                                               desc="window", label="nerf_fit window",
+                                               progress_interval_s=ctx.progress_interval_s,
+                                               idle_threads=cfg.threads_per_worker == 0,
+                                               then=fit_rest_part if split else None))
+        finally:
+            shutil.rmtree(out_dir / COLOUR_SCRATCH, ignore_errors=True)
     pose_tables, metric_rows, render_rows = [], [], []
     for key in payloads:
         o = outcomes[key]

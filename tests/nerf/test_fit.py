@@ -6,7 +6,7 @@ import torch
 
 from nerf import fit as fitmod
 from nerf.config import PanopticConfig, preset
-from nerf.fit import fit_colour, fit_panoptic_window
+from nerf.fit import fit_colour, fit_panoptic_window, load_colour, save_colour
 from nerf.panoptic.labels import WindowLabels
 from nerf.trainer import NonFiniteLoss
 
@@ -103,6 +103,28 @@ def test_a_shared_colour_phase_gives_a_variant_the_fit_it_would_get_alone(window
     assert colour.result.renders == {}
     with pytest.raises(ValueError, match="other settings"):
         fit_panoptic_window(data, labels, preset("cpu", **COLOUR, seed=1), shared_grid, colour=colour)
+
+
+def test_a_colour_phase_saved_and_loaded_in_another_process_fits_the_same_window(window_and_labels, one_thread,
+                                                                                tmp_path):
+    data, labels = window_and_labels
+    cfg = preset("cpu", **COLOUR)
+    colour = fit_colour(data, cfg, depth_poses="scale")
+    in_memory = fit_panoptic_window(data, labels, cfg, PANOPTIC, depth_poses="scale", colour=colour)
+    save_colour(colour, tmp_path / "colour.pt")
+    loaded = load_colour(tmp_path / "colour.pt", data)   # the window as a new process loads it again
+    assert loaded.depth_info == colour.depth_info and loaded.result.steps == colour.result.steps
+    np.testing.assert_array_equal(loaded.data.poses_c2w, colour.data.poses_c2w)   # the depth-corrected poses
+    again = fit_panoptic_window(data, labels, cfg, PANOPTIC, depth_poses="scale", colour=loaded)
+    twice = fit_panoptic_window(data, labels, cfg, PANOPTIC, depth_poses="scale", colour=colour)
+    for other in (again, twice):   # the heads start from the colour phase's random state, not what ran since
+        assert in_memory.colour.val_psnr == other.colour.val_psnr
+        for i, r in in_memory.colour.renders.items():
+            np.testing.assert_array_equal(other.colour.renders[i]["instance"], r["instance"])
+            assert torch.equal(other.colour.renders[i]["rgb"], r["rgb"])
+    np.testing.assert_array_equal(again.initial_poses, in_memory.initial_poses)
+    with pytest.raises(ValueError, match="a colour phase of"):
+        load_colour(tmp_path / "colour.pt", data.take(np.arange(3)))
 
 
 def test_a_failing_phase_names_the_window(window_and_labels, monkeypatch):

@@ -131,3 +131,36 @@ def test_the_last_task_takes_the_threads_of_a_finished_worker():
     kept = parallel.map_tasks(short_or_long, {"short": "short", "long": "long"}, n_workers=2, threads_per_worker=1,
                               show_progress=False, idle_threads=False)
     assert kept["long"].result == 1 and kept["long"].seconds > 11  # nobody gave it the idle core
+
+
+def first_part(x):
+    """Sleeps a little (task 0 longest) and says when it started and ended."""
+    import time
+
+    t0 = time.time()
+    if x == 9:
+        raise ValueError("the first part of task 9 failed")
+    time.sleep(4.0 if x == 0 else 0.5)
+    return {"x": x, "first": (t0, time.time())}
+
+
+def second_part(r):
+    import time
+
+    return {**r, "second": time.time(), "value": r["x"] * 10}
+
+
+@pytest.mark.slow
+def test_second_parts_run_as_tasks_of_their_own_after_every_first_part():
+    out = parallel.map_tasks(first_part, {str(i): i for i in (0, 1, 2, 3)}, n_workers=2, threads_per_worker=1,
+                             show_progress=False, then=second_part)
+    done = {k: o.result for k, o in out.items()}
+    assert {k: r["value"] for k, r in done.items()} == {"0": 0, "1": 10, "2": 20, "3": 30}
+    last_first_start = max(r["first"][0] for r in done.values())
+    assert all(r["second"] >= last_first_start for r in done.values())   # every first part before a second
+    # 2's and 3's first parts ran beside 0's, as soon as 1's had finished; then 1's second part
+    assert done["3"]["first"][0] < done["0"]["first"][1] and done["1"]["second"] < done["0"]["first"][1]
+    assert out["0"].seconds > out["1"].seconds >= 0.45   # a task's seconds: both parts'
+    failed = parallel.map_tasks(first_part, {"9": 9, "1": 1}, n_workers=1, show_progress=False, then=second_part)
+    assert isinstance(failed["9"].error, ValueError) and failed["9"].result is None   # no second part
+    assert failed["1"].result["value"] == 10
