@@ -56,10 +56,12 @@ class NerfModel:
         lo, hi = self.scene.lo, self.scene.hi
         return lambda p: ((p >= lo) & (p <= hi)).all(-1)
 
-    def shade(self, o: Tensor, d: Tensor, s: Samples) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-        """Field at packed samples -> (sigma [S], rgb [S, 3], world points [S, 3], features [S, feature_dim])."""
+    def shade(self, o: Tensor, d: Tensor, s: Samples, colour: bool = True
+              ) -> tuple[Tensor, Tensor | None, Tensor, Tensor]:
+        """Field at packed samples -> (sigma [S], rgb [S, 3], world points [S, 3], features [S, feature_dim]);
+        colour False: rgb None, the colour decoder skipped."""
         x = o[s.ray_index] + d[s.ray_index] * s.t_mid[:, None]
-        dn = torch.nn.functional.normalize(d[s.ray_index], dim=-1)
+        dn = torch.nn.functional.normalize(d[s.ray_index], dim=-1) if colour else None
         sigma, rgb, g = self.field(self.scene.normalise(x), dn)
         return sigma, rgb, x, g
 

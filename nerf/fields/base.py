@@ -42,8 +42,9 @@ class Field(Protocol):
         """x [N, 3] -> sigma [N] (float32, >= 0, finite)."""
         ...
 
-    def __call__(self, x: Tensor, d: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        """x [N, 3], unit directions d [N, 3] -> sigma [N], rgb [N, 3] in [0, 1], features [N, feature_dim]."""
+    def __call__(self, x: Tensor, d: Tensor | None) -> tuple[Tensor, Tensor | None, Tensor]:
+        """x [N, 3], unit directions d [N, 3] -> sigma [N], rgb [N, 3] in [0, 1], features [N, feature_dim];
+        d None: no colour (rgb None), for callers that need only density and features."""
         ...
 
 

@@ -68,9 +68,10 @@ class MlpPeField(nn.Module):
     def density(self, x: Tensor) -> Tensor:
         return torch.exp(self.sigma_out(self.features(x))[:, 0].float().clamp(max=MAX_LOG_DENSITY))
 
-    def forward(self, x: Tensor, d: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        """x [N, 3] normalised positions, d [N, 3] unit directions -> sigma [N], rgb [N, 3], trunk features [N, W]."""
+    def forward(self, x: Tensor, d: Tensor | None) -> tuple[Tensor, Tensor | None, Tensor]:
+        """x [N, 3] normalised positions, d [N, 3] unit directions -> sigma [N], rgb [N, 3], trunk features [N, W]
+        (d None: rgb None)."""
         h = self.features(x)
         sigma = torch.exp(self.sigma_out(h)[:, 0].float().clamp(max=MAX_LOG_DENSITY))
-        rgb = torch.sigmoid(self.color_net(torch.cat([h, fourier(d, DIR_FREQS)], -1)))
+        rgb = None if d is None else torch.sigmoid(self.color_net(torch.cat([h, fourier(d, DIR_FREQS)], -1)))
         return sigma, rgb, h

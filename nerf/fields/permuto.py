@@ -53,10 +53,11 @@ class RadianceField(nn.Module):
         h = self.density_net(self.grid(x))
         return torch.exp(h[:, 0].float().clamp(max=MAX_LOG_DENSITY))
 
-    def forward(self, x: Tensor, d: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        """x [N, 3] normalised positions, d [N, 3] unit directions -> sigma [N], rgb [N, 3], g_c [N, L*F]."""
+    def forward(self, x: Tensor, d: Tensor | None) -> tuple[Tensor, Tensor | None, Tensor]:
+        """x [N, 3] normalised positions, d [N, 3] unit directions -> sigma [N], rgb [N, 3], g_c [N, L*F]
+        (d None: rgb None)."""
         g = self.grid(x)
         h = self.density_net(g)
         sigma = torch.exp(h[:, 0].float().clamp(max=MAX_LOG_DENSITY))
-        rgb = torch.sigmoid(self.color_net(torch.cat([h, sh_deg2(d)], -1)))
+        rgb = None if d is None else torch.sigmoid(self.color_net(torch.cat([h, sh_deg2(d)], -1)))
         return sigma, rgb, g

@@ -38,24 +38,25 @@ class KeptSamples:
     w: Tensor        # [S] colour weights (detached)
     ray_index: Tensor
     n_rays: int
-    rgb: Tensor      # [R, 3]
+    rgb: Tensor | None   # [R, 3]; None where weighted_samples was asked for no colour
     depth: Tensor    # [R] z-depth, metres (expected termination depth / opacity)
     opacity: Tensor  # [R]
     n_evaluated: int
 
 
 def weighted_samples(model: NerfModel, o: Tensor, d: Tensor, min_weight: float, round_samples: int = 32,
-                     keep_grad_features: bool = False) -> KeptSamples:
+                     keep_grad_features: bool = False, colour: bool = True) -> KeptSamples:
     """March rays through the frozen colour model in rounds with early termination, as rendering does (8, 16,
     then `round_samples` occupied samples per ray: most rays meet an opaque surface within their first few),
-    and keep the samples with weight >= min_weight."""
+    and keep the samples with weight >= min_weight. colour False: no ray colour (the panoptic phase's training
+    steps need only the weights, depth and features; the colour decoder is a third of shading a sample)."""
     n = o.shape[0]
     dev = o.device
     cfg = model.cfg
     edges = model.edges(dev)
     occ = model.occupied_fn()
     eps = cfg.early_stop_transmittance
-    rgb = torch.zeros(n, 3, device=dev)
+    rgb = torch.zeros(n, 3, device=dev) if colour else None
     depth = torch.zeros(n, device=dev)
     trans = torch.ones(n, device=dev)
     active = torch.arange(n, device=dev)
@@ -72,12 +73,13 @@ def weighted_samples(model: NerfModel, o: Tensor, d: Tensor, min_weight: float, 
         if len(s) == 0:
             break
         with torch.set_grad_enabled(keep_grad_features):
-            sigma, col, x, g = model.shade(o[active], d[active], s)
+            sigma, col, x, g = model.shade(o[active], d[active], s, colour)
         with torch.no_grad():
             w, left = composite_weights(sigma.detach(), s.delta, s.ray_index, s.n_rays)
             w = w * trans[active][s.ray_index]
             ray = active[s.ray_index]
-            rgb.index_add_(0, ray, w[:, None] * col.detach())
+            if colour:
+                rgb.index_add_(0, ray, w[:, None] * col.detach())
             depth.index_add_(0, ray, w * s.t_mid)
             keep = w >= min_weight
             had = torch.bincount(s.ray_index, minlength=s.n_rays) >= per_ray

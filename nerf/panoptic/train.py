@@ -113,7 +113,7 @@ def fit_panoptic(model: NerfModel, labels: WindowLabels, is_train: np.ndarray, d
         v, u = flat // w, flat % w
         o, d = pixel_rays(model.intrinsics[fi.to(dev)], model.poses_c2w[fi.to(dev)],
                           u.float().to(dev) + 0.5, v.float().to(dev) + 0.5)
-        ks = weighted_samples(model, o, d, cfg.min_weight, keep_grad_features=shared)
+        ks = weighted_samples(model, o, d, cfg.min_weight, keep_grad_features=shared, colour=False)
         p_sem, p_inst = ray_probs(pfield, ks)
         sem = sem_t[fi, v, u].to(dev).long()
         inst = inst_t[fi, v, u].to(dev).long()

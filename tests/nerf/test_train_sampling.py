@@ -66,3 +66,8 @@ def test_the_panoptic_pass_marches_the_rounds_of_the_colour_render(short_fit):
     assert torch.allclose(ks.opacity, ref["opacity"], atol=1e-5)
     assert ks.n_evaluated == round(float(ref["samples_per_ray"]) * u.numel())
     assert len(ks.w) > 0 and float(ks.w.min()) >= 1e-2
+    # the panoptic phase's training steps ask for no colour: the same samples, weights, depth and features
+    bare = weighted_samples(m, o, d, min_weight=1e-2, colour=False)
+    assert bare.rgb is None
+    for name in ("x", "g", "w", "ray_index", "depth", "opacity"):
+        assert torch.equal(getattr(bare, name), getattr(ks, name)), name
