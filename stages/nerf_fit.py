@@ -95,8 +95,8 @@ def window_payload(wid: int, w: pd.DataFrame, cfg: Config, mcfg: NerfConfig, dev
 
 def fit_one(payload: dict) -> dict:
     """Runs in a Dask worker: load the window, fit it (nerf/fit.py), write checkpoint and renders, return rows."""
-    data, measured = _start(payload)
-    return _finish(payload, data, None, measured)
+    frames, data, measured = _start(payload)
+    return _finish(payload, frames, data, None, measured)
 
 
 def fit_colour_part(payload: dict) -> dict:
@@ -104,11 +104,10 @@ def fit_colour_part(payload: dict) -> dict:
     in the output folder; returns the payload for fit_rest_part."""
     from nerf.fit import fit_colour, save_colour
 
-    data, measured = _start(payload)
-    wid, key = payload["window_id"], str(payload["window_id"])
-    colour = fit_colour(data, payload["cfg"], payload["depth_poses"], payload["device"],
-                        lambda s, n, info: parallel.report(key, s, n, **info), f"window {wid}",
-                        payload["icp_max_depth_m"])
+    _, data, measured = _start(payload)
+    wid = payload["window_id"]
+    colour = fit_colour(data, payload["cfg"], payload["depth_poses"], payload["device"], _progress(wid),
+                        f"window {wid}", payload["icp_max_depth_m"])
     path = Path(payload["out_dir"]) / COLOUR_SCRATCH / f"window_{wid:03d}.pt"
     path.parent.mkdir(parents=True, exist_ok=True)
     save_colour(colour, path)
@@ -120,40 +119,44 @@ def fit_rest_part(payload: dict) -> dict:
     fit_colour_part wrote (whose file it removes), its checkpoint, renders and rows."""
     from nerf.fit import load_colour
 
-    data, measured = _start(payload)
+    frames, data, measured = _start(payload)
     path = Path(payload["colour_path"])
     colour = load_colour(path, data, payload["device"])
     path.unlink()
-    return _finish(payload, data, colour, measured)
+    return _finish(payload, frames, data, colour, measured)
 
 
 COLOUR_SCRATCH = ".colour_phases"
 """Folder in the nerf output where fit_colour_part leaves each window's colour phase for fit_rest_part."""
 
 
+def _progress(wid: int):
+    """progress(done, total, info) of window `wid`'s fit, reported from inside its worker."""
+    return lambda s, n, info: parallel.report(str(wid), s, n, **info)
+
+
 def _start(payload: dict):
-    """A task's start: the worker's freed heap handed back, its peak memory reset; the window's frames loaded."""
+    """A task's start: the worker's freed heap handed back, its peak memory reset; the window's frame rows and
+    frames loaded. Returns (rows, WindowData, whether the peak is measured)."""
     release_freed()  # a worker fits window after window: the last one's freed heap is not carried into this one
     measured = resources.reset_own_peak()
     frames = pd.DataFrame(payload["frames"])
-    parallel.report(str(payload["window_id"]), 0, len(frames), phase="load frames")
-    return load_window(frames, Path(payload["data_root"])), measured
+    _progress(payload["window_id"])(0, len(frames), {"phase": "load frames"})
+    return frames, load_window(frames, Path(payload["data_root"])), measured
 
 
-def _finish(payload: dict, data, colour, measured: bool) -> dict:
+def _finish(payload: dict, frames: pd.DataFrame, data, colour, measured: bool) -> dict:
     """The window's fit from its colour phase (None: fitted here too), then its checkpoint, renders and rows."""
     import torch
 
     from nerf.fit import fit_panoptic_window
 
     wid, out_dir, data_root = payload["window_id"], Path(payload["out_dir"]), Path(payload["data_root"])
-    frames = pd.DataFrame(payload["frames"])
-    key = str(wid)
     detections = pd.DataFrame(payload["detections"]) if payload["detections"] else None
     fit = fit_panoptic_window(data, lambda: load_labels(frames, detections, data_root), payload["cfg"],
                               payload["panoptic"], depth_poses=payload["depth_poses"],
                               render_scale=payload["render_scale"], device=payload["device"],
-                              progress=lambda s, n, info: parallel.report(key, s, n, **info), name=f"window {wid}",
+                              progress=_progress(wid), name=f"window {wid}",
                               icp_max_depth_m=payload["icp_max_depth_m"], colour=colour)
     res, pan = fit.colour, fit.panoptic
     name = f"window_{wid:03d}"
