@@ -113,7 +113,7 @@ def fit_panoptic_window(data: WindowData, labels: WindowLabels | Callable[[], Wi
                         cfg: NerfConfig, panoptic: PanopticConfig, depth_poses: DepthPoses = "off",
                         render_scale: float = 1.0, device: str = "cpu",
                         progress: Progress | None = None, colour: ColourPhase | None = None,
-                        name: str = "window", icp_max_depth_m: float = 0.0) -> WindowFit:
+                        name: str = "window", icp_max_depth_m: float = 0.0, keep_colour: bool = True) -> WindowFit:
     """Fit window `data` and render its validation frames.
 
     1. fit_colour: initial poses corrected with depth (`depth_poses`), colour phase with `cfg`;
@@ -124,8 +124,9 @@ def fit_panoptic_window(data: WindowData, labels: WindowLabels | Callable[[], Wi
        completion over those renders;
        without it: the colour renders of the validation frames, at full size.
 
-    `colour`: the colour phase already fitted by fit_colour(data, cfg, depth_poses); the panoptic phase then
-    trains on a copy of it, so one colour fit serves several panoptic variants (bench/ablation.py).
+    `colour`: the colour phase already fitted by fit_colour(data, cfg, depth_poses); with `keep_colour` the
+    panoptic phase trains on a copy of it, so one colour fit serves several panoptic variants (bench/ablation.py);
+    without, on it (its renders and model become the fit's: for a caller that uses it once, a model's copy less).
     `name` is how errors of the two fits name the window ('window 3: ...'). Progress goes to
     `progress(done, total, info)` (see Progress)."""
     if colour is None:
@@ -133,7 +134,7 @@ def fit_panoptic_window(data: WindowData, labels: WindowLabels | Callable[[], Wi
     elif (colour.cfg, colour.depth_poses) != (cfg, depth_poses):
         raise ValueError(f"{name}: the colour phase given was fitted with other settings than cfg and "
                          f"depth_poses={depth_poses!r} (it has depth_poses={colour.depth_poses!r})")
-    else:
+    elif keep_colour:
         colour = copy.copy(colour)
         colour.result = copy.deepcopy(colour.result)  # the panoptic phase may train the colour grid (grid_mode shared)
     fitted, res = colour.data, colour.result

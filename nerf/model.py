@@ -10,7 +10,7 @@ from torch import Tensor
 from nerf.config import NerfConfig, config_from_state
 from nerf.fields import Field, build_field
 from nerf.occupancy import OccupancyGrid
-from nerf.render import Rounds, Samples, accumulate, composite_weights, cone_steps, pixel_rays, round_size
+from nerf.render import Rounds, Samples, composite, cone_steps, pixel_rays, ray_points, round_size
 from nerf.window import Scene
 
 
@@ -60,8 +60,7 @@ class NerfModel:
               ) -> tuple[Tensor, Tensor | None, Tensor, Tensor]:
         """Field at packed samples -> (sigma [S], rgb [S, 3], world points [S, 3], features [S, feature_dim]);
         colour False: rgb None, the colour decoder skipped."""
-        x = o[s.ray_index] + d[s.ray_index] * s.t_mid[:, None]
-        dn = torch.nn.functional.normalize(d[s.ray_index], dim=-1) if colour else None
+        x, dn = ray_points(o, d, s, with_dirs=colour)
         sigma, rgb, g = self.field(self.scene.normalise(x), dn)
         return sigma, rgb, x, g
 
@@ -88,10 +87,9 @@ class NerfModel:
             if len(s) == 0:
                 break
             sigma, col, _, _ = self.shade(o[active], d[active], s)
-            w, left = composite_weights(sigma, s.delta, s.ray_index, s.n_rays)
-            w = w * trans[active][s.ray_index]
-            rgb.index_add_(0, active, accumulate(col, w, s.ray_index, s.n_rays))
-            depth.index_add_(0, active, accumulate(s.t_mid, w, s.ray_index, s.n_rays))
+            c, dsum, left = composite(sigma, col, s)
+            rgb.index_add_(0, active, c * trans[active, None])
+            depth.index_add_(0, active, dsum * trans[active])
             had = torch.bincount(s.ray_index, minlength=s.n_rays) >= per_ray
             trans[active] = trans[active] * left
             n_samples += len(s)

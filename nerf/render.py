@@ -152,6 +152,85 @@ def _march_ext(origins: Tensor, occupied_fn):
     return ext if ext is not None and hasattr(ext, "march_occupied") else None
 
 
+def ray_points(o: Tensor, d: Tensor, s: Samples, with_dirs: bool = True, fused: bool = True
+               ) -> tuple[Tensor, Tensor | None]:
+    """World points o + d t [S, 3] of packed samples and their rays' unit directions [S, 3] (None without
+    `with_dirs`), differentiable in o and d [R, 3]. On the CPU with the fused kernels built (and `fused`), one
+    pass per ray each way (nerf/csrc/ray_points_cpu.h) instead of gathers and index_put; equal to the
+    reference to float rounding."""
+    ext = _composite_ext(o, d) if fused else None
+    if ext is None:
+        x = o[s.ray_index] + d[s.ray_index] * s.t_mid[:, None]
+        return x, torch.nn.functional.normalize(d[s.ray_index], dim=-1) if with_dirs else None
+    x, dn = _RayPoints.apply(o.contiguous(), d.contiguous(), s.t_mid.detach().float().contiguous(),
+                             s.ray_index.contiguous(), with_dirs, ext)
+    return x, dn if with_dirs else None
+
+
+class _RayPoints(torch.autograd.Function):
+    """The fused kernel of ray_points(); no gradient to the samples' depths."""
+
+    @staticmethod
+    def forward(ctx, o, d, t, ray_index, with_dirs, ext):
+        x, dn = ext.ray_points_forward(o.detach(), d.detach(), t, ray_index, with_dirs)
+        ctx.ext = ext
+        ctx.save_for_backward(o, d, t, ray_index)
+        return x, dn
+
+    @staticmethod
+    def backward(ctx, g_x, g_dn):
+        o, d, t, ray_index = ctx.saved_tensors
+        g_x = torch.zeros(len(t), 3) if g_x is None else g_x.float().contiguous()
+        g_dn = None if g_dn is None or g_dn.numel() == 0 else g_dn.float().contiguous()
+        g_o, g_d = ctx.ext.ray_points_backward(g_x, g_dn, o.detach(), d.detach(), t, ray_index)
+        return g_o, g_d, None, None, None, None
+
+
+def composite(sigma: Tensor, rgb: Tensor, s: Samples, fused: bool = True) -> tuple[Tensor, Tensor, Tensor]:
+    """Colour [R, 3], depth sum_i w_i t_i [R] and transmittance left [R] of packed samples with densities
+    sigma [S] and colours rgb [S, 3] (composite_weights + accumulate, differentiable in sigma and rgb). On the
+    CPU with the fused kernels built (and `fused`), one pass per ray forward and one backward
+    (nerf/csrc/composite_cpu.h) instead of a dozen tensor ops; equal to the reference to float rounding."""
+    ext = _composite_ext(sigma, rgb) if fused else None
+    if ext is None:
+        w, left = composite_weights(sigma, s.delta, s.ray_index, s.n_rays)
+        return accumulate(rgb, w, s.ray_index, s.n_rays), accumulate(s.t_mid, w, s.ray_index, s.n_rays), left
+    return _Composite.apply(sigma.contiguous(), rgb.contiguous(), s.t_mid.detach().float().contiguous(),
+                            s.delta.detach().float().contiguous(), s.ray_index.contiguous(), s.n_rays, ext)
+
+
+class _Composite(torch.autograd.Function):
+    """The fused kernel of composite(); no gradient to the samples' depths and lengths."""
+
+    @staticmethod
+    def forward(ctx, sigma, rgb, t, delta, ray_index, n_rays, ext):
+        colour, depth, left = ext.composite_forward(sigma.detach(), delta, rgb.detach(), t, ray_index, n_rays)
+        ctx.ext = ext
+        ctx.save_for_backward(sigma, rgb, t, delta, ray_index, colour, depth, left)
+        return colour, depth, left
+
+    @staticmethod
+    def backward(ctx, g_colour, g_depth, g_left):
+        sigma, rgb, t, delta, ray_index, colour, depth, left = ctx.saved_tensors
+        zero = lambda g, like: torch.zeros_like(like) if g is None else g.float().contiguous()  # noqa: E731
+        g_sigma, g_rgb = ctx.ext.composite_backward(zero(g_colour, colour), zero(g_depth, depth),
+                                                    zero(g_left, left), sigma.detach(), delta, rgb.detach(), t,
+                                                    ray_index, colour, depth, left)
+        return g_sigma, g_rgb, None, None, None, None, None
+
+
+def _composite_ext(sigma: Tensor, rgb: Tensor):
+    """The fused kernels' module when composite() (sigma [S], rgb [S, 3]) or ray_points() (o, d [R, 3]) can use
+    them for these tensors, else None."""
+    if sigma.device.type != "cpu" or sigma.dtype != torch.float32 or rgb.dtype != torch.float32 or rgb.dim() != 2 \
+            or rgb.shape[-1] != 3:
+        return None
+    from nerf._ext import load_permuto_ext
+
+    ext = load_permuto_ext("cpu")
+    return ext if ext is not None and hasattr(ext, "composite_forward") else None
+
+
 def composite_weights(sigma: Tensor, delta: Tensor, ray_index: Tensor, n_rays: int) -> tuple[Tensor, Tensor]:
     """Per-sample weights w [S] and per-ray transmittance left after the samples [R]. Packed,
     ray_index non-decreasing; exclusive cumulative sum per ray. sigma >= 0 may be huge or inf (an opaque

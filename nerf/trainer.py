@@ -25,7 +25,7 @@ from nerf.model import NerfModel, init_occupancy
 from nerf.occupancy import OccupancyGrid
 from nerf.pixel_sampling import GradientCDF, draw_pixels, gradient_cdf
 from nerf.poses import PoseCorrection
-from nerf.render import Samples, accumulate, composite_weights, march, pixel_rays, transmittance
+from nerf.render import Samples, composite, march, pixel_rays, transmittance
 from nerf.window import WindowData, depth_far_m, parallax_spread, window_scene
 
 
@@ -152,14 +152,13 @@ def fit_window(data: WindowData, cfg: NerfConfig, device: str = "cpu",
         if cfg.train_early_stop > 0:
             s = visible_samples(model, o, d, s, cfg.train_early_stop)
         sigma, col, _, _ = model.shade(o, d, s)
-        wts, left = composite_weights(sigma, s.delta, s.ray_index, s.n_rays)
-        rgb = accumulate(col, wts, s.ray_index, s.n_rays)
+        rgb, depth_sum, left = composite(sigma, col, s)
         target = images[frames, v, u].float() / 255.0
         loss_c = torch.mean((rgb - target) ** 2)
         loss = loss_c
         if cfg.depth_loss_weight > 0:
             dgt = depths[frames, v, u]
-            dpred = accumulate(s.t_mid, wts, s.ray_index, s.n_rays) + left * cfg.far_m
+            dpred = depth_sum + left * cfg.far_m
             m = (~pose_rays) & depth_ok[frames, v, u]
             if m.any():
                 loss = loss + cfg.depth_loss_weight * torch.mean(torch.abs(dpred[m] - dgt[m]))
@@ -266,8 +265,7 @@ def register(model: NerfModel, poses: PoseCorrection, opt: torch.optim.Optimizer
             o, d = _rays_for(model, poses, c2w0, k, frames, u.float() + 0.5, v.float() + 0.5, None)
             s = march(o, d, edges, model.occupied_fn(), jitter=True, max_per_ray=model.cfg.max_samples_per_ray)
             sigma, col, _, _ = model.shade(o, d, s)
-            wts, _ = composite_weights(sigma, s.delta, s.ray_index, s.n_rays)
-            rgb = accumulate(col, wts, s.ray_index, s.n_rays)
+            rgb = composite(sigma, col, s)[0]
             loss = torch.mean((rgb - images[frames, v, u].float() / 255.0) ** 2)
             if shift_weight > 0:
                 loss = loss + shift_weight * shift_cost(poses, val_idx)

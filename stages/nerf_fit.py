@@ -157,7 +157,7 @@ def _finish(payload: dict, frames: pd.DataFrame, data, colour, measured: bool) -
                               payload["panoptic"], depth_poses=payload["depth_poses"],
                               render_scale=payload["render_scale"], device=payload["device"],
                               progress=_progress(wid), name=f"window {wid}",
-                              icp_max_depth_m=payload["icp_max_depth_m"], colour=colour)
+                              icp_max_depth_m=payload["icp_max_depth_m"], colour=colour, keep_colour=False)
     res, pan = fit.colour, fit.panoptic
     name = f"window_{wid:03d}"
     resume = Path(payload["resume_dir"]) if payload.get("resume_dir") else None

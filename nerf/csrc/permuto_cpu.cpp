@@ -507,6 +507,8 @@ double random_access(torch::Tensor table, int64_t n_points, int64_t reads, int64
 }
 
 #include "march_cpu.h"
+#include "composite_cpu.h"
+#include "ray_points_cpu.h"
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("permuto_forward", &permuto_forward, "permutohedral hash encoding forward: (features, jacobian)");
@@ -516,6 +518,10 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("permuto_simplices", &permuto_simplices, "hashed rows and barycentric weights of one level");
   m.def("random_access", &random_access, "random read / read-modify-write microbenchmark");
   m.def("march_occupied", &march_occupied, "cone marching through the occupancy grid: (ray_index, col, t)");
+  m.def("composite_forward", &composite_forward, "volume compositing of packed samples: (colour, depth, left)");
+  m.def("composite_backward", &composite_backward, "its backward: (grad_sigma, grad_rgb)");
+  m.def("ray_points_forward", &ray_points_forward, "sample points and unit directions of packed samples: (x, dn)");
+  m.def("ray_points_backward", &ray_points_backward, "its backward: (grad_o, grad_d)");
   m.def("release_cached", &release_cached, "free the output pool's cached blocks and this thread's scratch: bytes");
   m.def("cached_bytes", &cached_bytes, "bytes of output blocks the pool holds for reuse");
 }

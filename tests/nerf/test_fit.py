@@ -123,6 +123,10 @@ def test_a_colour_phase_saved_and_loaded_in_another_process_fits_the_same_window
             np.testing.assert_array_equal(other.colour.renders[i]["instance"], r["instance"])
             assert torch.equal(other.colour.renders[i]["rgb"], r["rgb"])
     np.testing.assert_array_equal(again.initial_poses, in_memory.initial_poses)
+    handed_over = fit_panoptic_window(data, labels, cfg, PANOPTIC, depth_poses="scale", colour=loaded,
+                                      keep_colour=False)   # as nerf_fit's second part: no copy of the model
+    assert handed_over.colour is loaded.result and handed_over.colour.renders
+    assert in_memory.colour.val_psnr == handed_over.colour.val_psnr
     with pytest.raises(ValueError, match="a colour phase of"):
         load_colour(tmp_path / "colour.pt", data.take(np.arange(3)))
 

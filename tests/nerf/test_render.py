@@ -124,3 +124,91 @@ def test_fused_march_rejects_bad_inputs():
         ext.march_occupied(o, d, edges, None, grid.occupied[:-1], grid.lo, grid.cell, grid.res, None, 0, 0)
     with pytest.raises(RuntimeError, match="u must be"):
         ext.march_occupied(o, d, edges, torch.rand(3, 3), grid.occupied, grid.lo, grid.cell, grid.res, None, 0, 0)
+
+
+def packed_batch(counts, seed=0):
+    """Packed samples of rays with `counts` samples each: densities over 8 decades, colours, depths, lengths."""
+    from nerf.render import Samples
+
+    g = torch.Generator().manual_seed(seed)
+    ray = torch.repeat_interleave(torch.arange(len(counts)), torch.tensor(counts))
+    n = len(ray)
+    sigma = torch.exp(torch.randn(n, generator=g) * 4)
+    rgb = torch.rand(n, 3, generator=g)
+    s = Samples(ray, torch.rand(n, generator=g) * 3, torch.rand(n, generator=g) * 0.05, len(counts))
+    return sigma, rgb, s
+
+
+def composite_and_grads(sigma, rgb, s, fused, seed=1):
+    """composite()'s outputs and the gradients of a random linear function of all three."""
+    from nerf.render import composite
+
+    sigma, rgb = sigma.clone().requires_grad_(), rgb.clone().requires_grad_()
+    out = composite(sigma, rgb, s, fused=fused)
+    g = torch.Generator().manual_seed(seed)
+    sum(torch.sum(o * torch.randn(o.shape, generator=g)) for o in out).backward()
+    return [o.detach() for o in out] + [sigma.grad, rgb.grad]
+
+
+def test_fused_compositing_equals_reference_with_gradients():
+    import pytest
+
+    from nerf.render import _composite_ext
+
+    sigma, rgb, s = packed_batch([5, 0, 40, 1, 17, 0, 63, 2] * 30)
+    sigma[3], s.delta[3] = float("inf"), 0.0         # inf * 0: no optical depth
+    sigma[50] = float("inf")                          # opaque: everything behind it has no weight
+    if _composite_ext(sigma, rgb) is None:
+        pytest.skip("no C++ toolchain here: the fused kernel is unavailable")
+    ref = composite_and_grads(sigma, rgb, s, fused=False)
+    new = composite_and_grads(sigma, rgb, s, fused=True)
+    for name, a, b in zip(["colour", "depth", "left", "d sigma", "d rgb"], ref, new):
+        assert torch.isfinite(b).all(), name
+        assert torch.allclose(a, b, rtol=1e-4, atol=1e-6), (name, float((a - b).abs().max()))
+    assert new[2][1] == 1 and new[0][1].abs().sum() == 0      # a ray without samples
+
+
+def test_fused_compositing_falls_back_off_cpu_float32():
+    from nerf.render import _composite_ext
+
+    sigma, rgb, _ = packed_batch([3, 2])
+    assert _composite_ext(sigma.double(), rgb.double()) is None
+    assert _composite_ext(sigma, rgb[:, :2]) is None
+
+
+def test_fused_compositing_rejects_unsorted_rays():
+    import pytest
+
+    from nerf.render import _composite_ext
+
+    sigma, rgb, s = packed_batch([3, 2])
+    ext = _composite_ext(sigma, rgb)
+    if ext is None:
+        pytest.skip("no C++ toolchain here: the fused kernel is unavailable")
+    with pytest.raises(RuntimeError, match="non-decreasing"):
+        ext.composite_forward(sigma, s.delta, rgb, s.t_mid, s.ray_index.flip(0).contiguous(), s.n_rays)
+
+
+def test_fused_ray_points_equal_reference_with_gradients():
+    import pytest
+
+    from nerf.render import _composite_ext, ray_points
+
+    _, _, s = packed_batch([5, 0, 40, 1, 17] * 20, seed=2)
+    g = torch.Generator().manual_seed(3)
+    o, d = torch.randn(s.n_rays, 3, generator=g), torch.randn(s.n_rays, 3, generator=g)
+    if _composite_ext(o, d) is None:
+        pytest.skip("no C++ toolchain here: the fused kernel is unavailable")
+    for with_dirs in (True, False):
+        got = []
+        for fused in (False, True):
+            oo, dd = o.clone().requires_grad_(), d.clone().requires_grad_()
+            x, dn = ray_points(oo, dd, s, with_dirs=with_dirs, fused=fused)
+            gx = torch.randn(x.shape, generator=torch.Generator().manual_seed(4))
+            loss = (x * gx).sum() + ((dn * gx.flip(0)).sum() if with_dirs else 0)
+            loss.backward()
+            got.append([x.detach(), dn, oo.grad, dd.grad])
+        assert (got[1][1] is None) == (not with_dirs)
+        for name, a, b in zip(["x", "dn", "d o", "d d"], *got):
+            if a is not None:
+                assert torch.allclose(a.detach(), b.detach(), rtol=1e-4, atol=1e-5), (name, with_dirs)
