@@ -146,10 +146,15 @@ def _march_ext(origins: Tensor, occupied_fn):
 
     if origins.device.type != "cpu" or not isinstance(occupied_fn, OccupancyGrid):
         return None
+    return _cpu_kernels("march_occupied")
+
+
+def _cpu_kernels(kernel: str):
+    """The fused CPU kernels' module when it is built here and has `kernel`, else None."""
     from nerf._ext import load_permuto_ext
 
     ext = load_permuto_ext("cpu")
-    return ext if ext is not None and hasattr(ext, "march_occupied") else None
+    return ext if ext is not None and hasattr(ext, kernel) else None
 
 
 def ray_points(o: Tensor, d: Tensor, s: Samples, with_dirs: bool = True, fused: bool = True
@@ -158,7 +163,7 @@ def ray_points(o: Tensor, d: Tensor, s: Samples, with_dirs: bool = True, fused: 
     `with_dirs`), differentiable in o and d [R, 3]. On the CPU with the fused kernels built (and `fused`), one
     pass per ray each way (nerf/csrc/ray_points_cpu.h) instead of gathers and index_put; equal to the
     reference to float rounding."""
-    ext = _composite_ext(o, d) if fused else None
+    ext = _packed_ext(o, d) if fused else None
     if ext is None:
         x = o[s.ray_index] + d[s.ray_index] * s.t_mid[:, None]
         return x, torch.nn.functional.normalize(d[s.ray_index], dim=-1) if with_dirs else None
@@ -191,7 +196,7 @@ def composite(sigma: Tensor, rgb: Tensor, s: Samples, fused: bool = True) -> tup
     sigma [S] and colours rgb [S, 3] (composite_weights + accumulate, differentiable in sigma and rgb). On the
     CPU with the fused kernels built (and `fused`), one pass per ray forward and one backward
     (nerf/csrc/composite_cpu.h) instead of a dozen tensor ops; equal to the reference to float rounding."""
-    ext = _composite_ext(sigma, rgb) if fused else None
+    ext = _packed_ext(sigma, rgb) if fused else None
     if ext is None:
         w, left = composite_weights(sigma, s.delta, s.ray_index, s.n_rays)
         return accumulate(rgb, w, s.ray_index, s.n_rays), accumulate(s.t_mid, w, s.ray_index, s.n_rays), left
@@ -219,16 +224,13 @@ class _Composite(torch.autograd.Function):
         return g_sigma, g_rgb, None, None, None, None, None
 
 
-def _composite_ext(sigma: Tensor, rgb: Tensor):
-    """The fused kernels' module when composite() (sigma [S], rgb [S, 3]) or ray_points() (o, d [R, 3]) can use
-    them for these tensors, else None."""
-    if sigma.device.type != "cpu" or sigma.dtype != torch.float32 or rgb.dtype != torch.float32 or rgb.dim() != 2 \
-            or rgb.shape[-1] != 3:
+def _packed_ext(a: Tensor, b: Tensor):
+    """The fused kernels' module when composite() (a, b = sigma [S], rgb [S, 3]) or ray_points() (o, d [R, 3])
+    can use them for these tensors (CPU, float32), else None."""
+    if a.device.type != "cpu" or a.dtype != torch.float32 or b.dtype != torch.float32 or b.dim() != 2 \
+            or b.shape[-1] != 3:
         return None
-    from nerf._ext import load_permuto_ext
-
-    ext = load_permuto_ext("cpu")
-    return ext if ext is not None and hasattr(ext, "composite_forward") else None
+    return _cpu_kernels("composite_forward")
 
 
 def composite_weights(sigma: Tensor, delta: Tensor, ray_index: Tensor, n_rays: int) -> tuple[Tensor, Tensor]:

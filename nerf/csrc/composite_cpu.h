@@ -14,12 +14,12 @@
 //
 // Inputs: sigma, delta, t [S] float32; rgb [S, 3] float32; ray_index [S] int64, non-decreasing, in [0, R).
 
-// Start of each ray's run of samples: offsets [R + 1].
+// Start of each ray's run of samples: offsets [R + 1] (also used by ray_points_cpu.h).
 static std::vector<int64_t> ray_offsets(const int64_t* ray, int64_t S, int64_t R) {
   std::vector<int64_t> off(R + 1, 0);
   for (int64_t i = 0; i < S; ++i) {
-    TORCH_CHECK(ray[i] >= 0 && ray[i] < R, "composite: ray_index out of range");
-    TORCH_CHECK(i == 0 || ray[i] >= ray[i - 1], "composite: ray_index must be non-decreasing");
+    TORCH_CHECK(ray[i] >= 0 && ray[i] < R, "packed samples: ray_index out of range");
+    TORCH_CHECK(i == 0 || ray[i] >= ray[i - 1], "packed samples: ray_index must be non-decreasing");
     ++off[ray[i] + 1];
   }
   for (int64_t r = 0; r < R; ++r) off[r + 1] += off[r];

@@ -153,12 +153,12 @@ def composite_and_grads(sigma, rgb, s, fused, seed=1):
 def test_fused_compositing_equals_reference_with_gradients():
     import pytest
 
-    from nerf.render import _composite_ext
+    from nerf.render import _packed_ext
 
     sigma, rgb, s = packed_batch([5, 0, 40, 1, 17, 0, 63, 2] * 30)
     sigma[3], s.delta[3] = float("inf"), 0.0         # inf * 0: no optical depth
     sigma[50] = float("inf")                          # opaque: everything behind it has no weight
-    if _composite_ext(sigma, rgb) is None:
+    if _packed_ext(sigma, rgb) is None:
         pytest.skip("no C++ toolchain here: the fused kernel is unavailable")
     ref = composite_and_grads(sigma, rgb, s, fused=False)
     new = composite_and_grads(sigma, rgb, s, fused=True)
@@ -169,20 +169,20 @@ def test_fused_compositing_equals_reference_with_gradients():
 
 
 def test_fused_compositing_falls_back_off_cpu_float32():
-    from nerf.render import _composite_ext
+    from nerf.render import _packed_ext
 
     sigma, rgb, _ = packed_batch([3, 2])
-    assert _composite_ext(sigma.double(), rgb.double()) is None
-    assert _composite_ext(sigma, rgb[:, :2]) is None
+    assert _packed_ext(sigma.double(), rgb.double()) is None
+    assert _packed_ext(sigma, rgb[:, :2]) is None
 
 
 def test_fused_compositing_rejects_unsorted_rays():
     import pytest
 
-    from nerf.render import _composite_ext
+    from nerf.render import _packed_ext
 
     sigma, rgb, s = packed_batch([3, 2])
-    ext = _composite_ext(sigma, rgb)
+    ext = _packed_ext(sigma, rgb)
     if ext is None:
         pytest.skip("no C++ toolchain here: the fused kernel is unavailable")
     with pytest.raises(RuntimeError, match="non-decreasing"):
@@ -192,12 +192,12 @@ def test_fused_compositing_rejects_unsorted_rays():
 def test_fused_ray_points_equal_reference_with_gradients():
     import pytest
 
-    from nerf.render import _composite_ext, ray_points
+    from nerf.render import _packed_ext, ray_points
 
     _, _, s = packed_batch([5, 0, 40, 1, 17] * 20, seed=2)
     g = torch.Generator().manual_seed(3)
     o, d = torch.randn(s.n_rays, 3, generator=g), torch.randn(s.n_rays, 3, generator=g)
-    if _composite_ext(o, d) is None:
+    if _packed_ext(o, d) is None:
         pytest.skip("no C++ toolchain here: the fused kernel is unavailable")
     for with_dirs in (True, False):
         got = []
