@@ -72,8 +72,8 @@ def fused_label(frame: Frame, models: FruitModels, owners: dict, cfg: Config) ->
 
 def round_views(frame: Frame, models: FruitModels, owners: dict, cfg: Config) -> tuple[list, list]:
     """What one frame gives the refit: [(fruit, its pixels' points)] and [(fruit, (frame, segment, pixels,
-    centre [3], points))] of the detector segments lying mostly on fruits, each given to the fruit holding most
-    of it (at least min_group_px of its pixels)."""
+    centre [3], points, camera centre [3]))] of the detector segments lying mostly on fruits, each given to the
+    fruit holding most of it (at least min_group_px of its pixels)."""
     _, ev, ids = fused_label(frame, models, owners, cfg)
     grown, segs, taken = [], [], set()
     for f in np.unique(ids[ids > 0]):
@@ -91,7 +91,8 @@ def round_views(frame: Frame, models: FruitModels, owners: dict, cfg: Config) ->
         if n[j] >= min_px and 2 * covered[s] > size[s] and s not in taken:
             taken.add(s)
             pts = ev.points[on][inverse == j]
-            segs.append((f, (frame.frame_id, s, int(n[j]), robust_centre(pts)[0], pts[:: max(1, len(pts) // 400)])))
+            segs.append((f, (frame.frame_id, s, int(n[j]), robust_centre(pts)[0], pts[:: max(1, len(pts) // 400)],
+                             frame.c2w[:3, 3])))
     return grown, segs
 
 

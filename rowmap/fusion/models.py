@@ -14,7 +14,7 @@ from nerf.panoptic.complete import sphere_boxes
 from nerf.surfaces import fruit_sphere
 from rowmap.fusion.association import MIN_SPLIT_FRAMES, LocalFruit
 from rowmap.fusion.settings import Config
-from rowmap.geometry import subsample
+from rowmap.geometry import sphere_behind, subsample
 
 MIN_SPHERE_POINTS = 20
 """points: fewer fit no sphere."""
@@ -32,12 +32,18 @@ class FruitModel:
     radius: float = np.nan
     surface: cKDTree | None = None     # the points inside the sphere, one per margin_m / 2 cube
 
-    def refit(self, cfg: Config, keep_sphere: bool = False) -> "FruitModel":
+    def refit(self, cfg: Config, keep_sphere: bool = False, behind: tuple[np.ndarray, float] | None = None
+              ) -> "FruitModel":
         """Fit the sphere to the points (kept where none fits, or with keep_sphere where there is one) and the
-        seen surface to the points inside it."""
+        seen surface to the points inside it. `behind` (camera centre [3], radius in m): where the free fit is
+        no fruit (a shallow cap), a sphere of that radius behind the cap as seen from that camera."""
         fit = None
         if (self.centre is None or not keep_sphere) and len(self.points) >= MIN_SPHERE_POINTS:
-            fit = fruit_sphere(self.points[subsample(len(self.points), MAX_FIT_POINTS)], cfg.max_fruit_radius_m)
+            pts = self.points[subsample(len(self.points), MAX_FIT_POINTS)]
+            fit = fruit_sphere(pts, cfg.max_fruit_radius_m)
+            if fit is None and behind is not None and behind[1] > 0:
+                c = sphere_behind(pts, behind[0], behind[1], min_points=MIN_SPHERE_POINTS)
+                fit = None if c is None else (c, behind[1])
         if fit is not None:
             self.centre, self.radius = fit[0], float(fit[1])
         if self.centre is not None:
@@ -54,6 +60,9 @@ def dot3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 class FruitModels(dict):
     """{fruit id: FruitModel}, with the query one frame's evidence needs."""
+
+    typical_radius: float = np.nan
+    """m: the median radius of the fitted spheres of the row (fit_models)."""
 
     def in_view(self, hw: tuple[int, int], k: np.ndarray, c2w: np.ndarray, cfg: Config) -> dict[int, tuple]:
         """{fruit id: image box (v0, v1, u0, u1)} of the fruits whose halo ball meets the image."""
@@ -103,15 +112,18 @@ def fit_models(groups: list[list[int]], local: list[LocalFruit], views: dict, cf
                 m.points, m.centre = m.points + off, m.centre + off
                 m.refit(cfg)
         out[local[g[0]].fruit_id] = m
+    radii = [m.radius for m in out.values() if m.centre is not None]
+    out.typical_radius = float(np.median(radii)) if radii else np.nan
     return out
 
 
 def detector_clusters(views: list[tuple], ball: tuple | None, cfg: Config) -> tuple[np.ndarray, list[np.ndarray]]:
     """The fruits one row fruit holds by its detector segments `views` ((frame, segment, pixels, centre [3],
-    points) each). Centres closer than detector_split_m link; two clusters are two fruits where both are seen in
-    MIN_SPLIT_FRAMES frames and together in as many, where they share a frame and the smaller lies off the
-    fruit's sphere `ball` ((centre, radius) or None), or where one lies off it beside the largest. Returns
-    (cluster of each view, -1 none; their centres, most pixels first), or (all -1, []) for one fruit."""
+    points, camera centre [3]) each). Centres closer than detector_split_m link; two clusters are two fruits
+    where both are seen in MIN_SPLIT_FRAMES frames and together in as many, where they share a frame and the
+    smaller lies off the fruit's sphere `ball` ((centre, radius) or None), or where one lies off it beside the
+    largest. Returns (cluster of each view, -1 none; their centres, most pixels first), or (all -1, []) for one
+    fruit."""
     labels = np.full(len(views), -1)
     if cfg.detector_split_m <= 0 or len(views) < 2:
         return labels, []
@@ -145,8 +157,10 @@ def update(models: FruitModels, grown: dict[int, list[np.ndarray]], seg_views: d
     fruit whose detector segments (`seg_views`) form several clusters (detector_clusters) is split: cluster 0
     keeps its id, each other joins the fruit whose centre lies within max_match_distance_m (or inside its
     sphere), else is a new fruit. Returns the models and {(frame, segment): fruit id} of the split fruits'
-    segments (the detector evidence of the next round)."""
+    segments (the detector evidence of the next round). A cluster whose points fit no sphere (a fruit seen
+    only as a cap, at the row's ends or the image border) gets one of the row's typical radius behind them."""
     out = FruitModels()
+    out.typical_radius = models.typical_radius
     for f, m in models.items():
         pts = np.concatenate([m.points, *grown.get(f, [])]) if grown.get(f) else m.points
         out[f] = FruitModel(m.class_id, pts, m.centre, m.radius).refit(cfg, keep_sphere=True)
@@ -169,7 +183,8 @@ def update(models: FruitModels, grown: dict[int, list[np.ndarray]], seg_views: d
         for j, g in enumerate(ids):   # the clusters' models are fitted to their segments' points
             pts = np.concatenate([v[4] for v, lab in zip(views, labels) if lab == j])
             if j == 0 or out[g].centre is None:
-                out[g] = FruitModel(m.class_id, pts).refit(cfg)
+                eye = np.mean([v[5] for v, lab in zip(views, labels) if lab == j], 0)
+                out[g] = FruitModel(m.class_id, pts).refit(cfg, behind=(eye, out.typical_radius))
             else:
                 out[g].points = np.concatenate([out[g].points, pts])
         owners.update({(v[0], v[1]): ids[lab] for v, lab in zip(views, labels) if lab >= 0})

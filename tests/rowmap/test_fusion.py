@@ -219,3 +219,20 @@ def test_fuse_loads_each_frame_once_per_round_and_the_last_round_through_load_la
     assert [fid for fid, _, _ in out] == [3, 5]
     assert calls == {("round", 3): cfg.refine_rounds, ("round", 5): cfg.refine_rounds, ("last", 3): 1, ("last", 5): 1}
     assert (out[0][1][who >= 0] == 1).all()
+
+
+def test_a_fruit_seen_only_as_a_shallow_cap_gets_a_sphere_of_the_given_size_behind_the_cap():
+    cfg = Config()
+    centre = np.array([0.02, 0.01, 0.5])
+    rng = np.random.default_rng(1)
+    d = rng.normal(size=(4000, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    toward_eye = -centre / np.linalg.norm(centre)
+    cap = centre + R * d[d @ toward_eye > np.cos(np.radians(12))]   # what a view at the image border shows
+    cap += rng.normal(scale=0.001, size=cap.shape)                  # the depth's noise
+    assert FruitModel(class_id=2, points=cap).refit(cfg).centre is None   # a free fit to it is no fruit
+    m = FruitModel(class_id=2, points=cap).refit(cfg, behind=(np.zeros(3), R))
+    assert m.radius == R and np.linalg.norm(m.centre - centre) < R / 5   # the cap itself lies R from it
+    assert m.surface is not None
+    # the side comes from the camera: seen from behind the fruit, the sphere would lie in front of the cap
+    assert FruitModel(class_id=2, points=cap).refit(cfg, behind=(2 * centre, R)).centre[2] < cap[:, 2].mean()
