@@ -26,8 +26,6 @@ MAX_POINTS = 400
 """points kept per slot group and frame (evenly subsampled)."""
 MIN_SPLIT_FRAMES = 2
 """frames: a cluster of a slot's (or a fruit's detector) centres seen in fewer is no fruit of its own."""
-STRONG_OVERLAP = 0.8
-"""share of the smaller mask inside the other that lets two slots match up to twice max_match_distance_m."""
 
 
 def min_group_px(shape: tuple[int, ...]) -> int:
@@ -171,18 +169,15 @@ class MaskOverlaps:
         out = self._joint[(lo, hi, f)]
         return out if wa == lo else [(y, x, n) for x, y, n in out]
 
-    def overlap(self, wa: int, codes_a: dict, wb: int, codes_b: dict) -> tuple[int, int, int]:
-        """(intersection, union, smaller mask) pixels of two windows' masks ({frame: codes}) over shared frames."""
-        inter = union = smaller = 0
+    def overlap(self, wa: int, codes_a: dict, wb: int, codes_b: dict) -> tuple[int, int]:
+        """(intersection, union) pixels of two windows' masks ({frame: codes}) over the frames both rendered."""
+        inter = union = 0
         for f in self.frames(wa, wb):
             ca, cb = codes_a.get(f, ()), codes_b.get(f, ())
-            n_a = n_b = 0
             for x, y, n in self.joint(wa, wb, f):
-                n_a, n_b = n_a + n * (x in ca), n_b + n * (y in cb)
                 union += n * (x in ca or y in cb)
                 inter += n * (x in ca and y in cb)
-            smaller += min(n_a, n_b)
-        return inter, union, smaller
+        return inter, union
 
 
 def frame_codes(lfs: list[LocalFruit]) -> dict[int, set[int]]:
@@ -196,15 +191,13 @@ def frame_codes(lfs: list[LocalFruit]) -> dict[int, set[int]]:
 
 def pair_cost(a: LocalFruit, b: LocalFruit, overlaps: MaskOverlaps, cfg: Config) -> float:
     """distance / max_match_distance_m + (1 - mask IoU) of two windows' local fruits (IoU 0.5 without a shared
-    frame); inf past the gate or under min_mask_iou. Masks inside one another by STRONG_OVERLAP match up to
-    twice the gate (a window that saw a fruit as a sliver centres it poorly)."""
+    frame); inf past the gate or under min_mask_iou."""
     dist = np.inf if a.centre is None or b.centre is None else centre_distance(a, b)
-    if dist > 2 * cfg.max_match_distance_m:
+    if dist > cfg.max_match_distance_m:
         return np.inf
-    inter, union, smaller = overlaps.overlap(a.window_id, frame_codes([a]), b.window_id, frame_codes([b]))
+    inter, union = overlaps.overlap(a.window_id, frame_codes([a]), b.window_id, frame_codes([b]))
     iou = inter / union if union else 0.5
-    if (union and iou < cfg.min_mask_iou) or (
-            dist > cfg.max_match_distance_m and not (smaller and inter / smaller >= STRONG_OVERLAP)):
+    if union and iou < cfg.min_mask_iou:
         return np.inf
     return dist / cfg.max_match_distance_m + (1.0 - iou)
 
@@ -248,7 +241,7 @@ def associate(fruits: list[LocalFruit], masks: dict[tuple[int, int], np.ndarray]
         for i in a + b:
             by_w[fruits[i].window_id].append(fruits[i])
         for wa, wb in combinations(sorted(by_w), 2):
-            inter, union, _ = overlaps.overlap(wa, frame_codes(by_w[wa]), wb, frame_codes(by_w[wb]))
+            inter, union = overlaps.overlap(wa, frame_codes(by_w[wa]), wb, frame_codes(by_w[wb]))
             if union and inter / union < cfg.min_mask_iou:
                 return False
         return True

@@ -16,8 +16,6 @@ BORDER_BAND_PX = 8
 weakest (a fruit entering the view is painted as leaf or as its neighbour)."""
 BORDER_CONFIDENCE = 0.4
 """[0, 1]: the render's confidence in the border band."""
-MIN_HIDDEN_PX = 12
-"""pixels of a 320x180 image: fewer stuff pixels on a fruit's seen surface do not lower the render's confidence."""
 
 
 @dataclass
@@ -73,8 +71,7 @@ def render_label(labels: list[np.ndarray], support: list[dict[int, float]]) -> t
 def frame_evidence(frame: Frame, models: FruitModels, owners: dict[tuple[int, int], int], cfg: Config) -> Evidence:
     """The evidence of one frame. Candidates: the fruits the render paints and those whose halo is in view. A
     detector segment's fruit: `owners` ((frame, segment) -> fruit, from a split), else the fruit the render
-    paints on most of it. The render's confidence is BORDER_CONFIDENCE in the border band and, on a stuff pixel
-    on a fruit's seen surface, that fruit's render pixels / its hidden surface pixels (at most 1)."""
+    paints on most of it. The render's confidence is BORDER_CONFIDENCE in the border band, else 1."""
     h, w = frame.label.shape
     boxes = models.in_view((h, w), frame.k, frame.c2w, cfg)
     ids = np.array(sorted(set(np.unique(frame.label[frame.label > 0]).tolist()) | set(boxes)), np.int64)
@@ -106,9 +103,5 @@ def frame_evidence(frame: Frame, models: FruitModels, owners: dict[tuple[int, in
     scale = max(1.0, h * w / BASE_PIXELS)   # image pixels per reference pixel
     band = int(np.ceil(BORDER_BAND_PX * np.sqrt(scale)))
     border = (v < band) | (v >= h - band) | (u < band) | (u >= w - band)
-    hidden = (render == 0)[:, None] & (gap <= cfg.margin_m) & ~(beyond > cfg.margin_m)   # [P, F]
-    n_hidden = hidden.sum(0)
-    shown = np.bincount(render, minlength=len(ids) + 1)[1:]
-    cover = np.minimum(np.where(n_hidden >= MIN_HIDDEN_PX * scale, shown / np.maximum(n_hidden, 1), 1.0), 1.0)
-    confidence = np.minimum(np.where(border, BORDER_CONFIDENCE, 1.0), np.where(hidden, cover[None], 1.0).min(1, initial=1.0))
+    confidence = np.where(border, BORDER_CONFIDENCE, 1.0)
     return Evidence(v * w + u, ids, points, render, confidence, detector, segment, rel, beyond, gap, radii)

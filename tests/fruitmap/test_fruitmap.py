@@ -202,23 +202,16 @@ def test_fusion_uses_mask_overlap_on_shared_frames():
     assert association.pair_cost(a, b, association.MaskOverlaps({(0, 4): m_a, (1, 4): m_b}), cfg) == np.inf
 
 
-def test_a_sliver_with_a_poor_centre_still_joins_the_fruit_whose_mask_holds_it():
-    cfg = panoptic_fusion.Config(max_match_distance_m=0.04, min_mask_iou=0.3)   # masks inside: up to 8 cm
+def test_slots_farther_apart_than_the_gate_never_match_however_their_masks_overlap():
+    cfg = panoptic_fusion.Config(max_match_distance_m=0.04, min_mask_iou=0.3)
     a = association.LocalFruit(0, 3, 0, [(4, 0)], 50, 2, np.zeros(3))
-    far = association.LocalFruit(1, 8, 0, [(4, 0)], 50, 2, np.array([0.06, 0.0, 0.0]))   # 6 cm: a sliver's centre
     m_a, m_b = np.zeros((6, 6), np.int32), np.zeros((6, 6), np.int32)
-    m_a[:3, :3], m_b[:3, :2] = association.code(3, 0), association.code(8, 0)  # the other window: smaller
-    masks = {(0, 4): m_a, (1, 4): m_b}
-    assert np.isfinite(association.pair_cost(a, far, association.MaskOverlaps(masks), cfg))
-    m_b[:] = 0
-    m_b[:3, 2:4] = association.code(8, 0)  # half outside: the 4 cm gate holds
-    assert association.pair_cost(a, far, association.MaskOverlaps(masks), cfg) == np.inf
-    no_shared_frame = association.MaskOverlaps({(0, 4): m_a})
-    assert association.pair_cost(a, far, no_shared_frame, cfg) == np.inf
-    too_far = association.LocalFruit(1, 8, 0, [(4, 0)], 50, 2, np.array([0.09, 0.0, 0.0]))
-    m_b[:] = 0
-    m_b[:3, :3] = association.code(8, 0)
-    assert association.pair_cost(a, too_far, association.MaskOverlaps(masks), cfg) == np.inf
+    m_a[:3, :3], m_b[:3, :3] = association.code(3, 0), association.code(8, 0)   # the same mask in both windows
+    overlaps = association.MaskOverlaps({(0, 4): m_a, (1, 4): m_b})
+    near = association.LocalFruit(1, 8, 0, [(4, 0)], 50, 2, np.array([0.03, 0.0, 0.0]))
+    far = association.LocalFruit(1, 8, 0, [(4, 0)], 50, 2, np.array([0.05, 0.0, 0.0]))
+    assert association.pair_cost(a, near, overlaps, cfg) == pytest.approx(0.03 / 0.04)   # IoU 1
+    assert association.pair_cost(a, far, overlaps, cfg) == np.inf
 
 
 def test_runs_by_key_gives_each_labels_pixels_in_image_order():
