@@ -181,9 +181,10 @@ def update(models: FruitModels, grown: dict[int, list[np.ndarray]], seg_views: d
             if not near:
                 out[ids[-1]] = FruitModel(m.class_id, np.zeros((0, 3)))
         for j, g in enumerate(ids):   # the clusters' models are fitted to their segments' points
-            pts = np.concatenate([v[4] for v, lab in zip(views, labels) if lab == j])
+            mine = [v for v, lab in zip(views, labels) if lab == j]
+            pts = np.concatenate([v[4] for v in mine])
             if j == 0 or out[g].centre is None:
-                eye = np.mean([v[5] for v, lab in zip(views, labels) if lab == j], 0)
+                eye = np.mean([v[5] for v in mine], 0)
                 out[g] = FruitModel(m.class_id, pts).refit(cfg, behind=(eye, out.typical_radius))
             else:
                 out[g].points = np.concatenate([out[g].points, pts])
