@@ -15,10 +15,10 @@ from pipeline.images import ImageError, write_png
 from pipeline.parallel import available_cores, in_order
 from pipeline.stage import StageContext
 from rowmap.detections import dropped_segments, fruit_segments
-from rowmap.fusion import Config, Frame, fit_models, fuse, render_label, slot_views
+from rowmap.fusion import Config, Frame, fit_models, fuse, slot_views
 from rowmap.fusion.association import row_fruits, slot_table
 from rowmap.geometry import POSE_COLS, window_alignments, with_sensor_depth
-from rowmap.renders import PANOPTIC_KINDS, Renders, encode
+from rowmap.renders import PANOPTIC_KINDS, Renders
 
 INPUTS = ("frames", "windows", "window_poses", "window_metrics", "nerf", "renders", "images", "detections_filtered")
 OUTPUTS = ("panoptic_frames", "panoptic", "fruit_slots")
@@ -90,45 +90,36 @@ def read_slots(views: pd.DataFrame, frames: pd.DataFrame, renders: Renders, cfg:
 
 
 class FrameReader:
-    """Reads one frame's inputs for the fusion: every window's render of it with its slot codes mapped to row
-    fruits (`lut`), composed into one render label (render_label), the placing depth and the detector segments.
-    With keep (the last round, whose frames are written) it keeps {frame: (composed semantic, depth, whether a
-    pixel came from another window than the nearest)} in `kept` until the frame is written."""
+    """Reads one frame's inputs for the fusion: the nearest window's render of it, with its slot codes mapped
+    to row fruits (`lut`), the placing depth and the detector segments."""
 
     def __init__(self, frames: pd.DataFrame, renders: Renders, by_frame: dict[int, pd.DataFrame], codes: dict,
-                 lut: dict, support: dict, dropped: dict, ctx: StageContext):
+                 lut: dict, dropped: dict, ctx: StageContext):
         self.frames, self.renders, self.by_frame, self.codes = frames, renders, by_frame, codes
-        self.lut, self.support, self.dropped, self.ctx = lut, support, dropped, ctx
-        self.kept: dict[int, tuple[np.ndarray, np.ndarray, bool]] = {}
+        self.lut, self.dropped, self.ctx = lut, dropped, ctx
 
-    def window_label(self, w: int, fid: int, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(semantic, row fruit ids (0 stuff, -1 a dropped slot), depth) of window w's render of frame fid."""
-        sem, depth = (self.renders.read(w, fid, k, shape) for k in ("semantic", "depth"))
-        codes = self.codes[(w, fid)]
+    def render(self, fid: int, kind: str) -> np.ndarray:
+        fr, w = self.frames.loc[fid], int(self.by_frame[fid].window_id.iloc[0])
+        return self.renders.read(w, fid, kind, (int(fr.height), int(fr.width)))
+
+    def frame(self, fid: int) -> Frame:
+        fr, r = self.frames.loc[fid], self.by_frame[fid].iloc[0]
+        codes = self.codes[(int(r.window_id), fid)]
         thing = codes != 0
         keys = np.unique(codes[thing])
-        mapped = np.array([self.lut[(w, fid)].get(int(c), 0) for c in keys], np.int64)
-        label = np.zeros(shape, np.int64)
+        mapped = np.array([self.lut[(int(r.window_id), fid)].get(int(c), 0) for c in keys], np.int64)
+        label = np.zeros(codes.shape, np.int64)   # row fruit id; 0 stuff, -1 a dropped slot
         label[thing] = np.where(mapped == 0, -1, mapped)[np.searchsorted(keys, codes[thing])]
-        return sem, label, depth
-
-    def frame(self, fid: int, keep: bool = False) -> Frame:
-        fr, rows = self.frames.loc[fid], self.by_frame[fid]
-        wins = rows.window_id.astype(int).tolist()
-        sems, labels, depths = zip(*(self.window_label(w, fid, (int(fr.height), int(fr.width))) for w in wins))
-        label, src = render_label(list(labels), [self.support[w] for w in wins])
-        sem, depth = (np.take_along_axis(np.stack(images), src[None], 0)[0] for images in (sems, depths))
-        if keep:
-            self.kept[fid] = (sem, depth, bool((src > 0).any()))
-        return Frame(fid, label, with_sensor_depth(depth, self.ctx.abspath(fr.depth_path), fr.depth_scale_m),
-                     fruit_segments(fr, self.ctx.data_root, self.dropped.get(fid)), intrinsics(fr), rows.c2w.iloc[0])
+        depth = with_sensor_depth(self.render(fid, "depth"), self.ctx.abspath(fr.depth_path), fr.depth_scale_m)
+        return Frame(fid, label, depth, fruit_segments(fr, self.ctx.data_root, self.dropped.get(fid)), intrinsics(fr),
+                     r.c2w)
 
 
 def write_frame(fid: int, fused: np.ndarray, models, reader: FrameReader, n_windows: int, out_dir: Path,
                 ctx: StageContext) -> dict:
-    """Write one fused frame's PNGs (and its composed depth); its panoptic_frames row."""
+    """Write one fused frame's PNGs; its panoptic_frames row."""
     fr, r = reader.frames.loc[fid], reader.by_frame[fid].iloc[0]
-    sem_r, depth, composed = reader.kept.pop(fid)
+    sem_r = reader.render(fid, "semantic")
     classes = np.zeros(max(models, default=0) + 1, np.uint8)
     classes[list(models)] = [m.class_id for m in models.values()]
     label = np.maximum(fused, 0)
@@ -137,15 +128,11 @@ def write_frame(fid: int, fused: np.ndarray, models, reader: FrameReader, n_wind
     name = f"{fid:06d}.png"
     write_png(out_dir / "semantic" / name, sem.astype(np.uint8))
     write_png(out_dir / "instance" / name, label.astype(np.uint16))
-    depth_path = reader.renders.relpath(int(r.window_id), fid, "depth")
-    if composed:
-        ctx.count("frames_composed_from_several_windows")
-        write_png(out_dir / "depth" / name, encode("depth", depth))
-        depth_path = ctx.relpath("panoptic", f"depth/{name}")
     return {"frame_id": fid, "stamp_ns": int(fr.stamp_ns), "window_id": int(r.window_id), "offset": int(r.offset),
             "n_windows": n_windows, "semantic_path": ctx.relpath("panoptic", f"semantic/{name}"),
             "instance_path": ctx.relpath("panoptic", f"instance/{name}"),
-            "rgb_path": reader.renders.relpath(int(r.window_id), fid, "rgb"), "depth_path": depth_path,
+            "rgb_path": reader.renders.relpath(int(r.window_id), fid, "rgb"),
+            "depth_path": reader.renders.relpath(int(r.window_id), fid, "depth"),
             "n_fruits": int(len(np.unique(label[label > 0]))),
             **dict(zip(POSE_COLS, pose_txyzq(r.c2w[None])[0].tolist()))}
 
@@ -173,11 +160,10 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
         raise ValueError(f"panoptic_fusion: {len(groups)} fruits do not fit 16-bit instance PNGs (max 65535)")
     pick = views.assign(abs_off=views.offset.abs()).sort_values(["frame_id", "abs_off", "window_id"])
     by_frame = {int(f): g for f, g in pick.groupby("frame_id", sort=True)}
-    reader = FrameReader(frames, renders, by_frame, codes, *slot_table(local),
+    reader = FrameReader(frames, renders, by_frame, codes, slot_table(local),
                          dropped_segments(inputs.get("detections_filtered")), ctx)
     rows, models = [], fit_models(groups, local, per_slot, cfg)
-    for fid, fused, models in fuse(sorted(by_frame), reader.frame, models, cfg, ctx.progress,
-                                   load_last=lambda fid: reader.frame(fid, keep=True)):
+    for fid, fused, models in fuse(sorted(by_frame), reader.frame, models, cfg, ctx.progress):
         rows.append(write_frame(fid, fused, models, reader, int(n_win[fid]), out_dir, ctx))
     ctx.count("slots", len(local))
     ctx.count("slots_dropped", sum(lf.fruit_id == 0 for lf in local))

@@ -47,10 +47,10 @@ class Config:
     grow_overlap: int = 12
     """frames, >= 0 (at most half_width): neighbouring windows grow to share this many frames where they can
     without exceeding max_extend (cover_row; never a filler window for it; below min_overlap = min_overlap).
-    A shared validation frame is rendered by both windows, and panoptic_fusion takes each of its fruits from
-    the window that saw the fruit longer (rowmap.fusion.render_label): a window renders the fruits entering or
-    leaving its stretch of row poorly (seen in few of its training frames), and with a wide overlap those
-    frames come from the neighbour. Growing costs render time for the added frames, not fit steps."""
+    A shared validation frame is rendered by both windows: panoptic_fusion ties the two windows' fruits
+    together on such frames (centre distance and mask overlap), so a wider overlap links more of the fruits
+    entering or leaving a window's stretch of row. Growing costs render time for the added frames, not fit
+    steps."""
     context_frames: int = 4
     """frames, >= 0, beyond each end of a window whose role is training also train it (never validate it): a
     fruit entering or leaving the view in a window's first or last validation frames is otherwise seen by one

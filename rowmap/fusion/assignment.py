@@ -97,12 +97,11 @@ def round_views(frame: Frame, models: FruitModels, owners: dict, cfg: Config) ->
 
 
 def fuse(frame_ids: Iterable[int], load: Callable[[int], Frame], models: FruitModels, cfg: Config,
-         progress: Callable = lambda it, label, total: it, threads: int = 0,
-         load_last: Callable[[int], Frame] | None = None) -> Iterator[tuple[int, np.ndarray, FruitModels]]:
+         progress: Callable = lambda it, label, total: it, threads: int = 0
+         ) -> Iterator[tuple[int, np.ndarray, FruitModels]]:
     """(frame id, fused label [H, W], the final models) per frame of the last round, in frame order; each round
     before it refits the models (models.update) with what round_views collects. `threads`: frames at once (0 =
-    every core); `load` must be thread-safe. `load_last` (default `load`) loads the last round's frames, so a
-    caller can keep what it writes with a frame only there."""
+    every core); `load` must be thread-safe."""
     frame_ids, owners, threads = list(frame_ids), {}, threads or available_cores()
     for r in range(cfg.refine_rounds):
         grown: dict[int, list[np.ndarray]] = defaultdict(list)
@@ -114,7 +113,6 @@ def fuse(frame_ids: Iterable[int], load: Callable[[int], Frame], models: FruitMo
             for f, view in segs:
                 seg_views[f].append(view)
         models, owners = update(models, grown, seg_views, cfg)
-    last = load_last or load
-    fused = in_order(lambda fid: (fid, fused_label(last(fid), models, owners, cfg)[0]), frame_ids, threads)
+    fused = in_order(lambda fid: (fid, fused_label(load(fid), models, owners, cfg)[0]), frame_ids, threads)
     for fid, out in progress(fused, "write fused frames", len(frame_ids)):
         yield fid, out, models

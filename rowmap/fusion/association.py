@@ -291,14 +291,10 @@ def row_fruits(views: dict[tuple[int, int], dict], masks: dict[tuple[int, int], 
     return local, groups
 
 
-def slot_table(local: list[LocalFruit]) -> tuple[dict, dict]:
-    """({(window, frame): {slot code: fruit id}}, {window: {fruit id: frames it shows the fruit in}}): how each
-    render's slots map to row fruits, and how well each window saw each fruit (ties: more pixels)."""
+def slot_table(local: list[LocalFruit]) -> dict[tuple[int, int], dict[int, int]]:
+    """{(window, frame): {slot code: fruit id}}: how each render's slots map to row fruits."""
     lut: dict[tuple[int, int], dict[int, int]] = defaultdict(dict)
-    support: dict[int, dict[int, float]] = defaultdict(lambda: defaultdict(float))
     for lf in local:
         for f, g in lf.frames:
             lut[(lf.window_id, f)][int(code(lf.slot, g))] = lf.fruit_id
-        if lf.fruit_id:
-            support[lf.window_id][lf.fruit_id] += len({f for f, _ in lf.frames}) + lf.n_px * 1e-9
-    return lut, support
+    return lut

@@ -23,7 +23,7 @@ class Frame:
     """The inputs of one fused frame."""
 
     frame_id: int
-    label: np.ndarray    # [H, W] the render's fruit id (render_label); 0 = stuff, -1 = void (a dropped slot)
+    label: np.ndarray    # [H, W] the render's fruit id; 0 = stuff, -1 = void (a dropped slot)
     depth: np.ndarray    # [H, W] m: the z-depth that places pixels (sensor where valid, else the render's)
     segments: np.ndarray | None   # [H, W] detector segment ids (0 = none); None: no detector output
     k: np.ndarray        # (fx, fy, cx, cy)
@@ -46,26 +46,6 @@ class Evidence:
     beyond: np.ndarray      # [P, F] m beyond the sphere's centre along the pixel's ray (nan: no sphere)
     gap: np.ndarray         # [P, F] m to the fruit's seen surface (inf: farther than margin_m)
     radius: np.ndarray      # [F] m (nan: no sphere)
-
-
-def render_label(labels: list[np.ndarray], support: list[dict[int, float]]) -> tuple[np.ndarray, np.ndarray]:
-    """([H, W] one render label per pixel, [H, W] the window it came from) from several windows' renders of a
-    frame (`labels`: fruit ids, 0 stuff, -1 void, nearest window first; `support`: per window {fruit: how well
-    it saw it}). First a fruit from the window that saw it best, then stuff, then a fruit from another window
-    (which may have seen it only entering its stretch of row); ties: the nearer window."""
-    best: dict[int, tuple[float, int]] = {}   # among the windows that show the fruit in this frame
-    for j, (s, lab) in enumerate(zip(support, labels)):
-        for f in np.unique(lab[lab > 0]).tolist():
-            if f not in best or s.get(f, 0.0) > best[f][0]:
-                best[f] = (s.get(f, 0.0), j)
-    out, src, prio = labels[0].copy(), np.zeros(labels[0].shape, np.int64), np.full(labels[0].shape, -1)
-    for j, lab in enumerate(labels):
-        is_best = np.zeros(int(max(lab.max(), 0)) + 1, bool)
-        is_best[[f for f, (_, b) in best.items() if b == j and f < len(is_best)]] = True
-        p = np.where(lab > 0, np.where(is_best[np.maximum(lab, 0)], 2, 0), 1)
-        take = p > prio
-        out[take], src[take], prio[take] = lab[take], j, p[take]
-    return out, src
 
 
 def frame_evidence(frame: Frame, models: FruitModels, owners: dict[tuple[int, int], int], cfg: Config) -> Evidence:

@@ -393,8 +393,10 @@ def test_a_piece_the_render_misplaces_is_given_back_by_the_sensor_depth(make_row
     assert (fused[stolen] == own).mean() >= 0.9
 
 
-def test_a_frame_the_nearest_window_rendered_without_its_fruits_takes_them_from_the_other_window(
+def test_a_frame_the_nearest_window_rendered_without_its_fruits_gets_them_from_the_fruit_models(
         make_row, tiny_row_upstream):
+    """The fused frame is the nearest window's render; the fruits it failed to paint come back where the detector
+    shows them, through the models fitted to the other windows' views."""
     windows = pd.read_parquet(tiny_row_upstream / "interim" / SEQ / "windows.parquet")
     val = windows[windows.split == "val"].assign(d=lambda t: t.offset.abs()).sort_values(["frame_id", "d", "window_id"])
     shared = val.groupby("frame_id").window_id.nunique().loc[lambda n: n > 1].index
@@ -406,25 +408,20 @@ def test_a_frame_the_nearest_window_rendered_without_its_fruits_takes_them_from_
             sem, slots = np.where(slots > 0, 1, sem), np.zeros_like(slots)
         return sem, slots
 
-    # the fruit pixels the windows rendered, nothing added
-    render_only = ("panoptic_fusion.terms_off=detector,shape,surface,order", "panoptic_fusion.refine_rounds=0")
     whole = make_row(name="whole")
-    whole.runner(*render_only).run(["panoptic_fusion"], force=True)
+    whole.runner().run(["panoptic_fusion"], force=True)
     row = make_row(hook=lose_fruits)
-    row.runner(*render_only).run(["panoptic_fusion"], force=True)
+    row.runner().run(["panoptic_fusion"], force=True)
     pf = pd.read_parquet(row.processed / "panoptic_frames.parquet").set_index("frame_id")
     pf_whole = pd.read_parquet(whole.processed / "panoptic_frames.parquet").set_index("frame_id")
-    n_fruit_px = 0
+    found = n_fruit_px = 0
     for f in nearest:
+        assert pf.loc[f, "window_id"] == nearest[f]
         fused = read_label(row.root / pf.loc[f, "instance_path"], "fused")
         expected = read_label(whole.root / pf_whole.loc[f, "instance_path"], "fused")
-        # every fruit pixel, from the other window (up to a few pixels the surface rule moves differently)
-        assert ((fused > 0) != (expected > 0)).sum() <= 0.01 * (expected > 0).sum()
-        n_fruit_px += int((fused > 0).sum())
-        if (fused > 0).any():
-            assert pf.loc[f, "window_id"] == nearest[f] and "panoptic/depth/" in pf.loc[f, "depth_path"]
-            assert (row.root / pf.loc[f, "depth_path"]).exists()
-    assert n_fruit_px > 0
+        found += int(((fused > 0) & (expected > 0)).sum())
+        n_fruit_px += int((expected > 0).sum())
+    assert n_fruit_px > 0 and found >= 0.6 * n_fruit_px   # measured 0.75: the detector's segments are smaller
 
 
 def drop_renders(row, kinds: tuple[str, ...], window: int | None = None) -> None:

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from nerf.surfaces import unproject
-from rowmap.fusion import Config, Frame, FruitModel, FruitModels, frame_evidence, fused_label, render_label, terms
+from rowmap.fusion import Config, Frame, FruitModel, FruitModels, frame_evidence, fused_label, terms
 
 K = np.array([200.0, 200.0, 48.0, 32.0])   # fx, fy, cx, cy of a 96 x 64 image
 HW = (64, 96)
@@ -133,18 +133,6 @@ def test_each_term_can_be_switched_off_and_with_every_term_off_but_the_render_th
         Config(terms_off=("colour",))
 
 
-def test_a_frame_several_windows_rendered_takes_each_fruit_from_the_window_that_saw_it_best():
-    near, other = np.zeros((4, 6), np.int64), np.zeros((4, 6), np.int64)
-    near[:, 0:2] = 5          # fruit 5: a sliver in the nearest window, which saw it in 2 frames
-    other[:, 0:4] = 5         # ... whole in the other window, which saw it in 9
-    near[:, 4:6] = 6          # fruit 6: only the nearest window shows it
-    label, src = render_label(labels=[near, other], support=[{5: 2, 6: 4}, {5: 9}])
-    assert (label[:, 0:4] == 5).all() and (src[:, 0:4] == 1).all()
-    assert (label[:, 4:6] == 6).all() and (src[:, 4:6] == 0).all()
-    one, src1 = render_label(labels=[near], support=[{5: 2, 6: 4}])
-    assert (one == near).all() and (src1 == 0).all()
-
-
 def test_frames_fused_on_several_threads_match_one_thread_frame_for_frame():
     """rowmap.fusion.fuse works on frames in threads; its frames come back in order and equal one thread's."""
     import time
@@ -195,29 +183,25 @@ def test_a_slot_splits_into_the_same_pixel_groups_at_320x180_and_at_1280x720(pie
     assert counts == [groups, groups]
 
 
-def test_fuse_loads_each_frame_once_per_round_and_the_last_round_through_load_last():
-    """What a caller keeps per written frame (load_last) is loaded only in the last round, so the earlier
-    rounds do not hold it for every frame of the row."""
+def test_fuse_loads_each_frame_once_per_round_and_once_to_write_it():
+    """Nothing is held per frame between rounds: every round loads each frame again, and so does the write."""
     from collections import Counter
 
     from rowmap.fusion import fuse
 
-    cfg = Config()
+    cfg = Config(refine_rounds=2)
     centres = [np.array([0.0, 0.0, 0.5])]
     depth, who = scene(centres)
     models = FruitModels({1: model(centres[0], cfg)})
     calls = Counter()
 
-    def loader(kind):
-        def load(fid):
-            calls[kind, fid] += 1
-            return Frame(frame_id=fid, label=np.where(who >= 0, who + 1, 0), depth=depth, segments=None, k=K,
-                         c2w=np.eye(4))
-        return load
+    def load(fid):
+        calls[fid] += 1
+        return Frame(frame_id=fid, label=np.where(who >= 0, who + 1, 0), depth=depth, segments=None, k=K, c2w=np.eye(4))
 
-    out = list(fuse([3, 5], loader("round"), models, cfg, threads=2, load_last=loader("last")))
+    out = list(fuse([3, 5], load, models, cfg, threads=2))
     assert [fid for fid, _, _ in out] == [3, 5]
-    assert calls == {("round", 3): cfg.refine_rounds, ("round", 5): cfg.refine_rounds, ("last", 3): 1, ("last", 5): 1}
+    assert calls == {3: cfg.refine_rounds + 1, 5: cfg.refine_rounds + 1}
     assert (out[0][1][who >= 0] == 1).all()
 
 
