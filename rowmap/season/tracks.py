@@ -1,9 +1,10 @@
 """A season of one row: dates in time order -> fruit tracks, per-track summary and per-date registration.
 
 Date by date: register the date's counted fruits onto the open tracks' last positions (registration.py; the
-first date defines the season frame), assign them to the tracks (association.py), start a track for every
-fruit left over. Events are read off the finished tracks, so a fruit missed on one date and seen again is
-neither harvested nor set:
+first date defines the season frame), assign them to the tracks (association.py), give the tracks not yet red
+that are left over the fruits left over at their place however much they grew (only ripe fruits are picked),
+start a track for every fruit still left. Events are read off the finished tracks, so a fruit missed on one
+date and seen again is neither harvested nor set:
 
 - `set`: the first observation of a track, not on the first date, of a fruit no wider than
   set_max_diameter_m, lying inside the stretch of row the previous date recorded (so it would have been
@@ -28,6 +29,9 @@ from rowmap.season import association, registration
 RIPENESS_RANK = {"fruit_green": 0, "fruit_mixed": 1, "fruit_red": 2}
 """Ordinal ripeness of the fruit classes (pipeline/classes.py names); other names rank with green."""
 RED = "fruit_red"
+LEFTOVER_SHRINK = 2.0
+"""multiple of size_tolerance_m a not-yet-red track left over after the assignment may shrink by to take a fruit
+left over at its place (twice the tolerance: two diameters' noise, against one fruit gone and another there)."""
 
 
 SUMMARY_COLUMNS = ["track_id", "n_dates", "first_seq", "first_date", "last_date", "first_day", "last_day", "set_date",
@@ -149,12 +153,22 @@ def track_season(dates: list[DateRows], cfg: Config) -> Season:
         regs.append(reg)
         reg_xyz = reg(xyz)
         positions.append(reg(centres))
-        cost = association.costs(np.array([t.xyz for t in open_]).reshape(-1, 3),
-                                 np.array([t.diameter_m for t in open_]), np.array([t.rank for t in open_]),
-                                 np.array([row.day - dates[t.last].day for t in open_]), reg_xyz, d, rank, gates)
+
+        def cost_of(ts: list[_Track], js: list[int], g: association.Gates) -> np.ndarray:
+            days = np.array([row.day - dates[t.last].day for t in ts])
+            return association.costs(np.array([t.xyz for t in ts]).reshape(-1, 3), np.array([t.diameter_m for t in ts]),
+                                     np.array([t.rank for t in ts]), days, reg_xyz[js], d[js], rank[js], g)
+
+        pairs = [(open_[i], j) for i, j in association.assign(cost_of(open_, list(range(len(f))), gates))]
+        # only ripe fruits are picked: a track not yet red left without a fruit takes the fruit left over at its
+        # place that it could have grown into, however fast (a young fruit can outgrow growth_mm_per_day)
+        left = [t for t in open_ if all(t is not u for u, _ in pairs) and t.rank < RIPENESS_RANK[RED]]
+        spare = [j for j in range(len(f)) if j not in {j for _, j in pairs}]
+        if left and spare:
+            free = association.Gates(cfg.gate_m, LEFTOVER_SHRINK * cfg.size_tolerance_m, np.inf)
+            pairs += [(left[a], spare[b]) for a, b in association.assign(cost_of(left, spare, free))]
         taken = set()
-        for i, j in association.assign(cost):
-            t = open_[i]
+        for t, j in pairs:
             t.obs.append((k, j))
             t.xyz, t.last = reg_xyz[j], k
             t.diameter_m = d[j] if np.isfinite(d[j]) else t.diameter_m

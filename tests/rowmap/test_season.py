@@ -176,8 +176,27 @@ def test_gate_m_and_growth_mm_per_day_decide_what_continues_a_track():
     w, d0, d1 = two_dates(np.random.default_rng(10), grow_m=0.025)           # 25 mm in a week
     n = len(w) + 1
     assert track_season([d0, d1], Config(growth_mm_per_day=3.0)).tracks.track_id.nunique() == n
-    assert track_season([d0, d1], Config(growth_mm_per_day=1.0)).tracks.track_id.nunique() > n + 5
     assert track_season([d0, d1], Config(gate_m=0.002, growth_mm_per_day=3.0)).tracks.track_id.nunique() > n + 5
+    # green fruits are not picked: left without a fruit, they take the one they grew into, however fast
+    assert track_season([d0, d1], Config(growth_mm_per_day=1.0)).tracks.track_id.nunique() == n
+    # a red fruit gone is picked: a larger fruit where it hung is another one
+    for d in (d0, d1):
+        d.fruits["class_name"] = "fruit_red"
+    assert track_season([d0, d1], Config(growth_mm_per_day=1.0)).tracks.track_id.nunique() > n + 5
+
+
+def test_a_young_fruit_measured_smaller_than_tolerated_keeps_its_track_unless_another_fruit_takes_it():
+    """A green fruit left over after the assignment takes the fruit left over at its place within twice the
+    shrink tolerance (diameter noise), never one the assignment gave another track."""
+    w, d0, d1 = two_dates(np.random.default_rng(11))
+    d1.fruits.loc[d1.fruits.gid == w.gid[3], "diameter_m"] -= 0.015          # measured 15 mm smaller
+    t = track_season([d0, d1], Config(size_tolerance_m=0.01)).tracks
+    fid = int(d1.fruits.fruit_id[d1.fruits.gid == w.gid[3]].iloc[0])
+    track = t[(t.seq == "b") & (t.fruit_id == fid)].track_id.iloc[0]
+    assert (t.track_id == track).sum() == 2 and (t.event != "harvested").all()
+    d1.fruits.loc[d1.fruits.gid == w.gid[3], "diameter_m"] -= 0.015          # 30 mm: another fruit
+    t = track_season([d0, d1], Config(size_tolerance_m=0.01)).tracks
+    assert (t.event == "harvested").sum() == 1
 
 
 def test_correction_follows_and_continues_the_drift_of_the_pairs():
