@@ -189,17 +189,21 @@ def frame_codes(lfs: list[LocalFruit]) -> dict[int, set[int]]:
     return out
 
 
+MAX_PAIR_COST = 1.5
+"""the largest pair_cost of a match: that of two centres max_match_distance_m apart without a shared frame."""
+
+
 def pair_cost(a: LocalFruit, b: LocalFruit, overlaps: MaskOverlaps, cfg: Config) -> float:
     """distance / max_match_distance_m + (1 - mask IoU) of two windows' local fruits (IoU 0.5 without a shared
-    frame); inf past the gate or under min_mask_iou."""
+    frame); inf over MAX_PAIR_COST or under min_mask_iou: masks that agree on shared frames may lie further apart
+    (two windows' spheres of one fruit differ by up to a radius where each saw another side of it)."""
     dist = np.inf if a.centre is None or b.centre is None else centre_distance(a, b)
-    if dist > cfg.max_match_distance_m:
+    if dist > MAX_PAIR_COST * cfg.max_match_distance_m:
         return np.inf
     inter, union = overlaps.overlap(a.window_id, frame_codes([a]), b.window_id, frame_codes([b]))
     iou = inter / union if union else 0.5
-    if union and iou < cfg.min_mask_iou:
-        return np.inf
-    return dist / cfg.max_match_distance_m + (1.0 - iou)
+    cost = dist / cfg.max_match_distance_m + (1.0 - iou)
+    return np.inf if (union and iou < cfg.min_mask_iou) or cost > MAX_PAIR_COST else cost
 
 
 def candidate_pairs(fruits: list[LocalFruit], overlaps: MaskOverlaps, cfg: Config) -> list[tuple[float, int, int]]:
@@ -271,7 +275,8 @@ def associate(fruits: list[LocalFruit], masks: dict[tuple[int, int], np.ndarray]
                                 on[root[k]] += n
         if on:
             r, n_on = max(on.items(), key=lambda kv: kv[1])
-            if n_on >= total / 2 and min(centre_distance(lf, fruits[k]) for k in members[r]) <= cfg.max_match_distance_m:
+            gap = min(centre_distance(lf, fruits[k]) for k in members[r])
+            if n_on >= total / 2 and gap <= cfg.max_match_distance_m:
                 join(r, i)
     return [[i for i in g if fruits[i].centre is not None] for g in members.values()
             if any(fruits[i].centre is not None for i in g)]

@@ -202,16 +202,26 @@ def test_fusion_uses_mask_overlap_on_shared_frames():
     assert association.pair_cost(a, b, association.MaskOverlaps({(0, 4): m_a, (1, 4): m_b}), cfg) == np.inf
 
 
-def test_slots_farther_apart_than_the_gate_never_match_however_their_masks_overlap():
+def test_slots_past_the_gate_match_only_where_their_masks_agree_and_never_past_one_and_a_half_gates():
     cfg = panoptic_fusion.Config(max_match_distance_m=0.04, min_mask_iou=0.3)
     a = association.LocalFruit(0, 3, 0, [(4, 0)], 50, 2, np.zeros(3))
     m_a, m_b = np.zeros((6, 6), np.int32), np.zeros((6, 6), np.int32)
     m_a[:3, :3], m_b[:3, :3] = association.code(3, 0), association.code(8, 0)   # the same mask in both windows
+    m_b[:2, :2] = association.code(9, 0)                                           # but 4 of its 9 pixels
     overlaps = association.MaskOverlaps({(0, 4): m_a, (1, 4): m_b})
-    near = association.LocalFruit(1, 8, 0, [(4, 0)], 50, 2, np.array([0.03, 0.0, 0.0]))
-    far = association.LocalFruit(1, 8, 0, [(4, 0)], 50, 2, np.array([0.05, 0.0, 0.0]))
-    assert association.pair_cost(a, near, overlaps, cfg) == pytest.approx(0.03 / 0.04)   # IoU 1
-    assert association.pair_cost(a, far, overlaps, cfg) == np.inf
+
+    def other(slot: int, x: float) -> association.LocalFruit:
+        return association.LocalFruit(1, slot, 0, [(4, 0)], 50, 2, np.array([x, 0.0, 0.0]))
+
+    assert association.pair_cost(a, other(8, 0.03), overlaps, cfg) == pytest.approx(0.03 / 0.04 + 1 - 5 / 9)
+    assert association.pair_cost(a, other(8, 0.05), overlaps, cfg) == np.inf     # IoU 5/9: 1.25 + 0.44 > 1.5
+    m_b[:3, :3] = association.code(8, 0)                                          # the same mask again: IoU 1
+    overlaps = association.MaskOverlaps({(0, 4): m_a, (1, 4): m_b})
+    assert association.pair_cost(a, other(8, 0.05), overlaps, cfg) == pytest.approx(0.05 / 0.04)
+    assert association.pair_cost(a, other(8, 0.061), overlaps, cfg) == np.inf    # past 1.5 gates
+    alone = association.MaskOverlaps({(0, 4): m_a})                               # no shared frame: IoU 0.5
+    assert association.pair_cost(a, other(8, 0.04), alone, cfg) == pytest.approx(1.5)
+    assert association.pair_cost(a, other(8, 0.041), alone, cfg) == np.inf
 
 
 def test_runs_by_key_gives_each_labels_pixels_in_image_order():
