@@ -112,8 +112,9 @@ def test_rows_quick_runs_the_pipeline_and_is_checkpointed(tmp_path, capsys):
     verdict = cr[cr.seq == ""].set_index("rule")
     for rule in count_rules.RULES_OFF:
         delta = runs.loc[f"{rule} off", "f1"] - base.f1
-        expect = "keep" if delta < 0 else "drop" if delta > 0 else "no effect"
-        assert verdict.loc[rule, "verdict"] == expect or not np.isfinite(delta)
+        tol = count_rules.TOLERANCE   # F1s computed from other counts can differ in the last bit
+        expect = "keep" if delta < -tol else "drop" if delta > tol else "no effect"
+        assert verdict.loc[rule, "verdict"] == expect or not np.isfinite(delta), delta
     assert before == {p: p.stat().st_mtime_ns for p in before}  # the row's own tables untouched
     with pytest.raises(ValueError, match="no rows to check"):
         count_rules.main(["--data-root", str(data), "--out", str(out)])  # the full family has not run here
