@@ -11,7 +11,7 @@ every finished row each time. `--quick` runs 4 rows with tiny images and few ste
 harness; its numbers mean nothing) into rows_quick.* and sequences synth_rowsq_<name>.
 `--holdout` runs the held-out rows (bench/_row_family.py HOLDOUT: seeds and knob values in no family row)
 into rows_holdout.*, the check that what holds on the family is not tuned to it.
-`--unseen` runs the unseen rows (UNSEEN: defined before the fusion redesign, read once when a design is final)
+`--unseen` runs the unseen rows (UNSEEN: seeds and knobs in no other row, read once when a design is final)
 into rows_unseen.*.
 `--fit-seed N` (N >= 1) fits every window with nerf_fit.seed = N (the same recording, other random rays and
 initial weights) into rows_seed<N>.* (rows_holdout_seed<N>.* with --holdout) and sequences
