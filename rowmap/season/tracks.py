@@ -162,18 +162,19 @@ def track_season(dates: list[DateRows], cfg: Config) -> Season:
         pairs = [(open_[i], j) for i, j in association.assign(cost_of(open_, list(range(len(f))), gates))]
         # only ripe fruits are picked: a track not yet red left without a fruit takes the fruit left over at its
         # place that it could have grown into, however fast (a young fruit can outgrow growth_mm_per_day)
-        left = [t for t in open_ if all(t is not u for u, _ in pairs) and t.rank < RIPENESS_RANK[RED]]
-        spare = [j for j in range(len(f)) if j not in {j for _, j in pairs}]
+        matched, taken = {id(t) for t, _ in pairs}, {j for _, j in pairs}
+        left = [t for t in open_ if id(t) not in matched and t.rank < RIPENESS_RANK[RED]]
+        spare = [j for j in range(len(f)) if j not in taken]
         if left and spare:
             free = association.Gates(cfg.gate_m, LEFTOVER_SHRINK * cfg.size_tolerance_m, np.inf)
-            pairs += [(left[a], spare[b]) for a, b in association.assign(cost_of(left, spare, free))]
-        taken = set()
+            more = [(left[a], spare[b]) for a, b in association.assign(cost_of(left, spare, free))]
+            pairs += more
+            taken |= {j for _, j in more}
         for t, j in pairs:
             t.obs.append((k, j))
             t.xyz, t.last = reg_xyz[j], k
             t.diameter_m = d[j] if np.isfinite(d[j]) else t.diameter_m
             t.rank = max(t.rank, rank[j])
-            taken.add(j)
         for j in range(len(f)):
             if j not in taken:
                 tracks.append(_Track([(k, j)], reg_xyz[j], d[j], int(rank[j]), k))
