@@ -15,9 +15,14 @@ refinement). The depth sensor measures it directly. Two corrections, `depth_init
   after (ATE, rotation) are in the evaluation table (`ate_odometry_m`, `ate_refined_m`).
 
 Either way the online refinement then trains from colour only, as before.
+
+ICP runs in Open3D where it imports; elsewhere (a GPU machine without Open3D's wheels, or PAG_ICP=numpy) in
+numpy/scipy with the same steps and settings (voxel means, PCA normals, point-to-plane Gauss-Newton).
 """
 from __future__ import annotations
 
+import functools
+import os
 from dataclasses import dataclass
 from typing import Literal
 
@@ -63,12 +68,40 @@ class ScaleEstimate:
     """why no scale was applied, or ''."""
 
 
-def depth_cloud(depth_m: np.ndarray, k: np.ndarray, max_depth_m: float, voxel_m: float):
-    """Open3D point cloud (camera frame, with normals) of the pixels with depth in (0, max_depth_m]."""
-    import open3d as o3d
+IcpBackend = Literal["open3d", "numpy"]
 
+
+@functools.cache
+def icp_backend() -> IcpBackend:
+    """'numpy' when PAG_ICP=numpy or Open3D does not import, else 'open3d' (decided once per process)."""
+    if os.environ.get("PAG_ICP") == "numpy":
+        return "numpy"
+    try:
+        import open3d  # noqa: F401
+    except (ImportError, OSError):                                          # OSError: its shared libraries do not load
+        return "numpy"
+    return "open3d"
+
+
+@dataclass(frozen=True)
+class Cloud:
+    """A depth cloud of the numpy ICP (camera frame, metres)."""
+    points: np.ndarray
+    """[n, 3] voxel means."""
+    normals: np.ndarray
+    """[n, 3] unit normals, facing the camera."""
+
+
+def depth_cloud(depth_m: np.ndarray, k: np.ndarray, max_depth_m: float, voxel_m: float):
+    """Point cloud (camera frame, with normals) of the pixels with depth in (0, max_depth_m], thinned to the
+    mean point of each voxel of voxel_m, normals from the neighbours within 5 voxel_m (at most 30): an
+    Open3D PointCloud or, with the numpy backend (icp_backend), a Cloud."""
     v, u = np.nonzero((depth_m > 0) & (depth_m <= max_depth_m) & np.isfinite(depth_m))
     pts = unproject(depth_m, k, np.eye(4), v, u)
+    if icp_backend() == "numpy":
+        return numpy_cloud(pts, voxel_m)
+    import open3d as o3d
+
     pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts)).voxel_down_sample(voxel_m)
     if len(pc.points) < 3:
         return pc
@@ -76,16 +109,83 @@ def depth_cloud(depth_m: np.ndarray, k: np.ndarray, max_depth_m: float, voxel_m:
     return pc
 
 
+def numpy_cloud(pts: np.ndarray, voxel_m: float, max_nn: int = 30) -> Cloud:
+    """Cloud of points [N, 3] (camera frame): the mean point of each voxel of voxel_m (on Open3D's grid: cubes
+    from half a voxel below the points' minimum), normals from the PCA of each mean's nearest max_nn
+    neighbours (itself included) within 5 voxel_m (the covariance's least eigenvector; the optical axis with
+    fewer than 3, as in Open3D), turned to face the camera at the origin."""
+    from scipy.spatial import cKDTree
+
+    if len(pts) == 0:
+        return Cloud(np.zeros((0, 3)), np.zeros((0, 3)))
+    cell = np.floor((pts - (pts.min(0) - voxel_m / 2)) / voxel_m).astype(np.int64)
+    dims = cell.max(0) + 1
+    _, inv, count = np.unique((cell[:, 0] * dims[1] + cell[:, 1]) * dims[2] + cell[:, 2], return_inverse=True,
+                              return_counts=True)
+    inv = inv.reshape(-1)
+    pts = np.stack([np.bincount(inv, pts[:, a], len(count)) for a in range(3)], 1) / count[:, None]   # [n, 3]
+    n = len(pts)
+    dist, idx = cKDTree(pts).query(pts, k=min(max_nn, n), distance_upper_bound=5 * voxel_m, workers=-1)
+    dist, idx = dist.reshape(n, -1), idx.reshape(n, -1)
+    found = np.isfinite(dist)                                              # [n, k]
+    cnt = found.sum(1)
+    # a missing neighbour is the point itself (offset 0): it adds nothing to the sums below
+    rel = pts[np.where(found, idx, np.arange(n)[:, None])] - pts[:, None]  # [n, k, 3] offsets to the neighbours
+    mean = rel.sum(1) / cnt[:, None]                                       # [n, 3]
+    cov = np.matmul(rel.transpose(0, 2, 1), rel) / cnt[:, None, None] - mean[:, :, None] * mean[:, None, :]
+    normals = np.linalg.eigh(cov)[1][:, :, 0]                              # least eigenvalue's eigenvector
+    normals[cnt < 3] = [0.0, 0.0, 1.0]                                     # too few to fit a plane: the optical axis
+    normals *= np.where(np.einsum("ij,ij->i", normals, pts) > 0, -1.0, 1.0)[:, None]
+    return Cloud(pts, normals)
+
+
 def register(src, dst, init: np.ndarray, max_dist_m: float, min_points: int = 100) -> tuple[np.ndarray, float] | None:
     """Point-to-plane ICP of cloud `src` onto `dst` (depth_cloud) from `init` [4, 4]: (transform, fitness),
-    or None when either cloud has fewer than `min_points` points."""
-    import open3d as o3d
-
+    or None when either cloud has fewer than `min_points` points. Clouds of the numpy backend (Cloud) go to
+    numpy_icp, the others to Open3D."""
     if len(src.points) < min_points or len(dst.points) < min_points:
         return None
+    if isinstance(src, Cloud):
+        return numpy_icp(src, dst, init, max_dist_m)
+    import open3d as o3d
+
     reg = o3d.pipelines.registration.registration_icp(
         src, dst, max_dist_m, init, o3d.pipelines.registration.TransformationEstimationPointToPlane())
     return np.asarray(reg.transformation), float(reg.fitness)
+
+
+def numpy_icp(src: Cloud, dst: Cloud, init: np.ndarray, max_dist_m: float, max_iterations: int = 30,
+              min_step: float = 1e-6) -> tuple[np.ndarray, float]:
+    """Point-to-plane ICP (as Open3D's registration_icp) of `src` onto `dst` from `init` [4, 4]: (transform,
+    fitness). Each iteration pairs each moved src point p with its nearest dst point q within max_dist_m
+    (normal n) and takes the Gauss-Newton step (w, t) of the linearised residuals
+        r = (p - q) . n + w . (p x n) + t . n,     [p x n, n] (w, t) = -(p - q) . n  in least squares,
+    applied as exp([w]x), t; it stops after max_iterations or when |w| (rad) and |t| (m) fall below min_step.
+    fitness: the fraction of src points paired at the end."""
+    from scipy.spatial import cKDTree
+    from scipy.spatial.transform import Rotation
+
+    tree = cKDTree(dst.points)
+    t_total = np.array(init, dtype=np.float64)
+    for _ in range(max_iterations):
+        p = src.points @ t_total[:3, :3].T + t_total[:3, 3]
+        dist, j = tree.query(p, distance_upper_bound=max_dist_m, workers=-1)
+        ok = np.isfinite(dist)
+        if ok.sum() < 6:
+            break
+        p, q, n = p[ok], dst.points[j[ok]], dst.normals[j[ok]]
+        jac = np.concatenate([np.cross(p, n), n], 1)                      # [m, 6]
+        res = np.einsum("ij,ij->i", p - q, n)
+        # least squares: directions the scene leaves free (a plane's in-plane motion) get no step
+        step = np.linalg.lstsq(jac.T @ jac, -jac.T @ res, rcond=None)[0]
+        update = np.eye(4)
+        update[:3, :3], update[:3, 3] = Rotation.from_rotvec(step[:3]).as_matrix(), step[3:]
+        t_total = update @ t_total
+        if np.linalg.norm(step[:3]) < min_step and np.linalg.norm(step[3:]) < min_step:
+            break
+    p = src.points @ t_total[:3, :3].T + t_total[:3, 3]
+    dist, _ = tree.query(p, distance_upper_bound=max_dist_m, workers=-1)
+    return t_total, float(np.isfinite(dist).mean())
 
 
 def odometry_scale(depths: np.ndarray, intrinsics: np.ndarray, c2w: np.ndarray, gap: int = 8, stride: int = 4,
@@ -145,7 +245,8 @@ def place_onto(poses: np.ndarray, ref: np.ndarray) -> np.ndarray:
 
 
 def icp_trajectory(depths: np.ndarray, intrinsics: np.ndarray, c2w: np.ndarray,
-                   max_depth_m: float = REFERENCE_DEPTH_M, voxel_m: float = VOXEL_M, max_dist_m: float = MAX_DIST_M, min_fitness: float = 0.5,
+                   max_depth_m: float = REFERENCE_DEPTH_M, voxel_m: float = VOXEL_M, max_dist_m: float = MAX_DIST_M,
+                   min_fitness: float = 0.5,
                    max_link_change_m: float = 0.01, max_link_change_deg: float = 1.0) -> tuple[np.ndarray, int, str]:
     """A window's camera poses [N, 4, 4] from its depth frames: each consecutive pair's relative pose by
     point-to-plane ICP started from the odometry's, chained from the first frame, then placed onto the
@@ -191,9 +292,9 @@ AGREEMENT_GAP = 8
 def depth_disagreement(clouds: list, c2w: np.ndarray, max_dist_m: float, gap: int, stride: int = 2) -> float:
     """How far the depth clouds (depth_cloud: camera frames, with normals) of frames `gap` apart lie from each
     other's surfaces when placed with poses c2w [N, 4, 4]: the mean over pairs (i, i + gap), every `stride`
-    frames, and over frame i's points of the point-to-plane distance |(p - q) . n_q| from frame i's points p to their nearest
-    point q of frame j, each capped at 3 x max_dist_m (also where q is farther than that: a surface frame j
-    does not see). Point-to-plane, as ICP measures, so two samplings of one surface agree. Metres; lower =
+    frames, and over frame i's points of the point-to-plane distance |(p - q) . n_q| from frame i's points p to
+    their nearest point q of frame j, each capped at 3 x max_dist_m (also where q is farther than that: a surface
+    frame j does not see). Point-to-plane, as ICP measures, so two samplings of one surface agree. Metres; lower =
     the poses agree better with the depth."""
     from scipy.spatial import cKDTree
 
@@ -201,15 +302,15 @@ def depth_disagreement(clouds: list, c2w: np.ndarray, max_dist_m: float, gap: in
     out = []
     for i in range(0, len(c2w) - gap, stride):
         j = i + gap
-        dst = np.asarray(clouds[j].points)
-        if len(clouds[i].points) == 0 or len(dst) == 0 or not clouds[j].has_normals():
+        dst, dst_normals = np.asarray(clouds[j].points), np.asarray(clouds[j].normals)
+        if len(clouds[i].points) == 0 or len(dst) == 0 or len(dst_normals) != len(dst):
             continue
         rel = np.linalg.inv(c2w[j]) @ c2w[i]
         src = np.asarray(clouds[i].points) @ rel[:3, :3].T + rel[:3, 3]
         near, idx = cKDTree(dst).query(src, distance_upper_bound=cap)
         found = np.isfinite(near)
         dist = np.full(len(src), cap)
-        normals = np.asarray(clouds[j].normals)[idx[found]]
+        normals = dst_normals[idx[found]]
         dist[found] = np.minimum(np.abs(np.einsum("ij,ij->i", src[found] - dst[idx[found]], normals)), cap)
         out.append(float(dist.mean()))
     return float(np.mean(out)) if out else float("inf")
