@@ -167,10 +167,10 @@ def dispatch(args: argparse.Namespace) -> int:
                 print(f"{section}: {cfgmod.to_dict(value)}")
         return 0
     if args.command == "all":
-        names = [s.name for s in runner.active()]
-        lo = names.index(args.from_stage) if args.from_stage in names else 0
-        hi = names.index(args.to_stage) + 1 if args.to_stage in names else len(names)
-        runner.run(names[lo:hi], force=args.force)
+        # --from/--to name places in the stage order, also a stage this config leaves out (colmap_poses)
+        lo = STAGE_ORDER.index(args.from_stage) if args.from_stage else 0
+        hi = STAGE_ORDER.index(args.to_stage) if args.to_stage else len(STAGE_ORDER)
+        runner.run([s.name for s in runner.active() if lo <= STAGE_ORDER.index(s.name) <= hi], force=args.force)
         print(f"[pag] outputs: {(runner.data_root / 'interim' / runner.seq).resolve()} and "
               f"{(runner.data_root / 'processed' / runner.seq).resolve()}")
         _print_report_path(runner)

@@ -44,3 +44,18 @@ def test_missing_sequence_lists_the_sequences_present_without_hidden_folders(tmp
         (tmp_path / "raw" / name).mkdir(parents=True)
     with pytest.raises(PipelineError, match=r"Sequences present: \['row_a', 'synth_b'\]$"):
         Runner("row_x", data_root=tmp_path, show_progress=False).run(["ingest"])
+
+
+@pytest.mark.parametrize("bounds, want", [
+    (["--to", "colmap_poses"], ["ingest", "depth_filter", "windows"]),
+    (["--from", "colmap_poses", "--to", "nerf_fit"], ["nerf_fit"]),
+    (["--from", "fruit_count"], ["fruit_count", "evaluate", "report"]),
+])
+def test_from_and_to_name_places_in_the_stage_order_also_a_stage_the_config_leaves_out(tmp_path, monkeypatch,
+                                                                                        bounds, want):
+    (tmp_path / "raw" / "row_a").mkdir(parents=True)
+    ran = []
+    monkeypatch.setattr(Runner, "run", lambda self, targets=None, force=False: ran.extend(targets) or [])
+    # a recorded row (no synth) with odometry poses (the default): colmap_poses is not among the active stages
+    assert cli.main(["all", "--seq", "row_a", "--data-root", str(tmp_path), "--no-progress", *bounds]) == 0
+    assert ran == want
