@@ -11,8 +11,13 @@ Also measured in the same run, the machine's own limit: a C++ loop doing, per po
 read-modify-writes ('mem_4r4u': what forward + table gradient must touch) in a table of the same
 size, scheduled like the kernels. It moves no features and computes no lattice, so it is a floor.
 
+On a GPU (`--device cuda`) the same variants run there (each timed to the end of its kernels), and the
+limit is torch's own gather ('mem_4r': index_select of 4 random table rows per point and level) and gather
+plus scatter-add ('mem_4r4u') on the same table: a floor of what the device's random access allows through
+torch, with no lattice and no fused kernel of its own.
+
 Output `encoding.parquet`, one row per (points, grads, variant):
-    points, grads, variant, n_points, levels, features, log2_capacity, threads, repeats,
+    points, grads, variant, device, n_points, levels, features, log2_capacity, threads, repeats,
     median_s, mpts_per_s (million points per second, all levels), ns_per_point_level,
     speedup_vs_torch  (fused rows: reference median / fused median, same lattice),
     speedup_vs_cubic  (permuto_fused rows: cubic_fused median / permuto_fused median),
@@ -20,7 +25,7 @@ Output `encoding.parquet`, one row per (points, grads, variant):
 and `encoding.png` (throughput per variant, log scale).
 
     pag bench encoding [--points 65536] [--levels 16] [--features 2] [--log2-capacity 18]
-                       [--repeats 7] [--threads N] [--out data/bench]
+                       [--repeats 7] [--threads N] [--device cpu|cuda] [--out data/bench]
 """
 from __future__ import annotations
 
@@ -60,23 +65,55 @@ def sample_points(n: int, kind: str, seed: int = 0) -> torch.Tensor:
 def _train_step(enc: torch.nn.Module, x: torch.Tensor, grad_x: bool) -> Callable[[], None]:
     """Forward, then backward of a fixed dense upstream gradient (what the decoder hands the encoding in
     training; `.sum().backward()` would hand it a stride-0 tensor that the kernel first has to copy out)."""
-    grad_out = torch.randn(x.shape[0], enc.out_dim, generator=torch.Generator().manual_seed(1))
+    grad_out = torch.randn(x.shape[0], enc.out_dim, generator=torch.Generator().manual_seed(1)).to(x.device)
 
     def step() -> None:
         xx = x.detach().requires_grad_(grad_x)
         enc(xx).backward(grad_out)
         enc.table.grad = None
-    return step
+    return _synced(step, x.device)
+
+
+def _synced(fn: Callable[[], None], device: torch.device) -> Callable[[], None]:
+    """fn, returning only once the device has finished its work (CUDA runs kernels asynchronously)."""
+    if device.type != "cuda":
+        return fn
+
+    def run() -> None:
+        fn()
+        torch.cuda.synchronize(device)
+    return run
+
+
+def _gather_limits(table: torch.Tensor, n_points: int, ext) -> dict[str, Callable[[], None]]:
+    """The random-access floor on the table's device: 4 random rows read per point and level ('mem_4r'), or read
+    and updated ('mem_4r4u'). The CPU's is the fused module's own loop; a GPU's is torch's gather and scatter-add."""
+    if table.device.type == "cpu":
+        return {"mem_4r": lambda: ext.random_access(table, n_points, 4, 0),
+                "mem_4r4u": lambda: ext.random_access(table, n_points, 4, 4)}
+    rows = table.reshape(-1, table.shape[-1])
+    idx = torch.randint(0, rows.shape[0], (4 * table.shape[0] * n_points,), device=table.device,
+                        generator=torch.Generator(table.device).manual_seed(2))
+    acc = torch.zeros_like(rows)
+
+    def read_update() -> None:
+        acc.index_add_(0, idx, rows.index_select(0, idx))
+    return {"mem_4r": _synced(lambda: rows.index_select(0, idx), table.device),
+            "mem_4r4u": _synced(read_update, table.device)}
 
 
 def run(n_points: int = 2 ** 16, n_levels: int = 16, n_features: int = 2, log2_capacity: int = 18, repeats: int = 7,
-        threads: int | None = None, out_dir: Path = Path("data/bench")) -> pd.DataFrame:
-    """Measure, write `encoding.parquet` and `encoding.png` under out_dir, return the table."""
+        threads: int | None = None, out_dir: Path = Path("data/bench"), device: str = "cpu") -> pd.DataFrame:
+    """Measure on `device` ('cpu', 'cuda', 'cuda:N'), write `encoding.parquet` and `encoding.png` under out_dir,
+    return the table."""
     if n_points < 1 or repeats < 1:
         raise ValueError(f"need n_points >= 1 and repeats >= 1, got {n_points}, {repeats}")
-    ext = load_permuto_ext("cpu")
+    dev = torch.device(device)
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise RuntimeError(f"--device {device}: torch {torch.__version__} sees no CUDA device")
+    ext = load_permuto_ext(dev.type)
     if ext is None:
-        raise RuntimeError("the fused CPU kernel could not be built (see the warning above), so there is "
+        raise RuntimeError(f"the fused {dev.type} kernel could not be built (see the warning above), so there is "
                            "nothing to compare the reference with")
     old_threads = torch.get_num_threads()
     if threads is not None:
@@ -84,22 +121,21 @@ def run(n_points: int = 2 ** 16, n_levels: int = 16, n_features: int = 2, log2_c
     try:
         kw = dict(n_levels=n_levels, n_features=n_features, log2_capacity=log2_capacity, coarsest_scale=1.0,
                   finest_scale=1 / 2048, init_std=1e-2)
-        encs = {f"{name}_{backend}": cls(**kw, backend=backend)
+        encs = {f"{name}_{backend}": cls(**kw, backend=backend).to(dev)
                 for name, cls in ENCODINGS.items() for backend in ("torch", "fused")}
-        table = encs["permuto_fused"].table.detach()
+        limits = _gather_limits(encs["permuto_fused"].table.detach(), n_points, ext)
         rows = []
         for kind in ("uniform", "rays"):
-            x = sample_points(n_points, kind)
+            x = sample_points(n_points, kind).to(dev)
             for grads in ("table", "table+x"):
-                variants = {k: _train_step(e, x, grads == "table+x") for k, e in encs.items()}
-                variants["mem_4r"] = lambda: ext.random_access(table, n_points, 4, 0)
-                variants["mem_4r4u"] = lambda: ext.random_access(table, n_points, 4, 4)
+                variants = {k: _train_step(e, x, grads == "table+x") for k, e in encs.items()} | limits
                 for name, ts in interleaved_medians(variants, repeats).items():
                     med = statistics.median(ts)
-                    rows.append({"points": kind, "grads": grads, "variant": name, "n_points": n_points,
-                                 "levels": n_levels, "features": n_features, "log2_capacity": log2_capacity,
-                                 "threads": torch.get_num_threads(), "repeats": len(ts), "median_s": med,
-                                 "mpts_per_s": n_points / med / 1e6, "ns_per_point_level": med / (n_points * n_levels) * 1e9})
+                    rows.append({"points": kind, "grads": grads, "variant": name, "device": str(dev),
+                                 "n_points": n_points, "levels": n_levels, "features": n_features,
+                                 "log2_capacity": log2_capacity, "threads": torch.get_num_threads(),
+                                 "repeats": len(ts), "median_s": med, "mpts_per_s": n_points / med / 1e6,
+                                 "ns_per_point_level": med / (n_points * n_levels) * 1e9})
     finally:
         torch.set_num_threads(old_threads)
     df = _with_ratios(pd.DataFrame(rows))
@@ -165,9 +201,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--log2-capacity", type=int, default=18, help="log2 of the table size per level")
     p.add_argument("--repeats", type=int, default=7, help="interleaved rounds (medians are reported)")
     p.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's current setting)")
+    p.add_argument("--device", default="cpu", help="torch device: cpu, cuda or cuda:N")
     p.add_argument("--out", type=Path, default=Path("data/bench"), help="output folder")
     a = p.parse_args(argv)
-    df = run(a.points, a.levels, a.features, a.log2_capacity, a.repeats, a.threads, a.out)
+    df = run(a.points, a.levels, a.features, a.log2_capacity, a.repeats, a.threads, a.out, a.device)
     print(summary(df))
     print("targets: speedup_vs_torch >= 10 (fused vs reference), speedup_vs_cubic >= 1.25 (permuto vs cubic, fused)")
     print(f"written: {a.out / 'encoding.parquet'}, {a.out / 'encoding.png'}")

@@ -200,7 +200,8 @@ def fit_window(data: WindowData, cfg: NerfConfig, device: str = "cpu",
 
 def validate(res: FitResult, data: WindowData, render: Callable[[int], dict]) -> None:
     """Render every validation frame with `render(i)` (a dict with at least rgb [H, W, 3] and samples_per_ray)
-    and fill res.renders (rgb as uint8 tensors, 0-255; opacity left out), val_psnr, samples_per_ray and
+    and fill res.renders (in host memory, also from a GPU; rgb as uint8 tensors, 0-255; opacity left out),
+    val_psnr, samples_per_ray and
     render_s_per_image. A render made at a working scale carries its colour at that scale as "rgb_working"
     [h, w, 3] (not kept in res.renders): its PSNR is measured there, against the recorded image area-averaged
     to that size."""
@@ -209,7 +210,9 @@ def validate(res: FitResult, data: WindowData, render: Callable[[int], dict]) ->
     spr, render_s = [], []
     for i in np.flatnonzero(~data.is_train).tolist():
         t1 = time.perf_counter()
-        out = render(i)
+        # to the host: what is stored outlives the fit, and the copy waits for a GPU's render to finish, so the
+        # time is the render's, not its launch's
+        out = {k: v.cpu() if isinstance(v, torch.Tensor) else v for k, v in render(i).items()}
         render_s.append(time.perf_counter() - t1)
         rgb, image = out.pop("rgb_working", out["rgb"]), data.images[i]
         if rgb.shape[:2] != image.shape[:2]:

@@ -10,6 +10,7 @@ from __future__ import annotations
 import ast
 import dataclasses
 import inspect
+import re
 import textwrap
 import types
 import typing
@@ -27,8 +28,9 @@ class ConfigError(ValueError):
 class RunConfig:
     """Settings of the run itself (section `run`)."""
 
-    device: str = "cpu"
-    """torch device for the model stages: 'cpu', 'cuda' or 'cuda:N'."""
+    device: str = "auto"
+    """torch device for the model stages: 'auto' (the first GPU when torch sees one, else the CPU), 'cpu', 'cuda'
+    or 'cuda:N'."""
     scheduler: str = ""
     """dask.distributed scheduler address for nerf_fit ('' = start a local cluster)."""
     progress: bool = True
@@ -40,6 +42,8 @@ class RunConfig:
     shorter logs of long rows."""
 
     def __post_init__(self) -> None:
+        if not re.fullmatch(r"auto|cpu|cuda(:\d+)?", str(self.device)):
+            raise ConfigError(f"run.device must be 'auto', 'cpu', 'cuda' or 'cuda:N', got {self.device!r}")
         if not self.progress_interval_s >= 0:
             raise ConfigError(f"run.progress_interval_s must be >= 0 seconds, got {self.progress_interval_s}")
 

@@ -181,8 +181,25 @@ def idle_slots(n_workers: int, unfinished: int) -> int:
     return (n_workers - unfinished) // unfinished
 
 
-def default_workers(n_tasks: int) -> int:
+def default_workers(n_tasks: int, device: str = "cpu") -> int:
+    """Workers of a local cluster for n_tasks tasks on torch `device`: one per core on the CPU, one per GPU that
+    torch sees for 'cuda' (all GPUs), one for 'cuda:N'; never more than the tasks."""
+    if device.startswith("cuda"):
+        import torch
+
+        return max(1, min(n_tasks, torch.cuda.device_count() if device == "cuda" else 1))
     return max(1, min(n_tasks, os.cpu_count() or 1))
+
+
+def spread_over_gpus(device: str, task_index: int) -> str:
+    """The device of the task_index-th task: 'cuda' on a machine of several GPUs takes them in turn
+    ('cuda:0', 'cuda:1', ...), so that one worker per GPU fits on its own GPU; any other device is kept."""
+    if device != "cuda":
+        return device
+    import torch
+
+    n = torch.cuda.device_count()
+    return f"cuda:{task_index % n}" if n > 1 else device
 
 
 @contextlib.contextmanager

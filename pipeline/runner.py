@@ -39,6 +39,22 @@ class PipelineError(RuntimeError):
     """A stage could not run or failed; the message says which and why."""
 
 
+def torch_device(name: str) -> str:
+    """The torch device that run.device names: 'auto' is the first GPU when torch sees one, else the CPU. A GPU
+    that torch does not see is an error, not a silent run on the CPU."""
+    import torch
+
+    if name == "auto":
+        return "cuda" if torch.cuda.is_available() else "cpu"
+    if name.startswith("cuda"):
+        index = int(name.partition(":")[2] or 0)
+        if index >= torch.cuda.device_count():
+            raise PipelineError(f"run.device={name}, but torch {torch.__version__} sees {torch.cuda.device_count()} "
+                                f"CUDA device(s) (its CUDA build: {torch.version.cuda}); use run.device=auto or "
+                                "cpu, or install a CUDA build of torch (README, 'On a GPU machine')")
+    return name
+
+
 @dataclass
 class StageResult:
     stage: str
@@ -214,7 +230,8 @@ class Runner:
                     shutil.rmtree(old, ignore_errors=True)
         ctx = StageContext(stage=s.name, seq=self.seq, data_root=self.data_root, staging=staging,
                            show_progress=self.show_progress, progress_interval_s=run_cfg.progress_interval_s,
-                           device=run_cfg.device, scheduler=run_cfg.scheduler or None, resume_dir=resume / key)
+                           device=torch_device(run_cfg.device), scheduler=run_cfg.scheduler or None,
+                           resume_dir=resume / key)
         print(f"[pag] {s.name}: running", file=sys.stderr)
         release_freed()  # the last stage's freed heap is not counted in this one's peak, nor held through it
         t0 = time.perf_counter()

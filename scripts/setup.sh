@@ -4,10 +4,12 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
-PYTHON=${PYTHON:-python3.11}
-command -v "$PYTHON" >/dev/null 2>&1 || PYTHON=python3
-if ! "$PYTHON" -c 'import sys; sys.exit(0 if sys.version_info[:2] == (3, 11) else 1)'; then
-    echo "error: Python 3.11 is required (found $("$PYTHON" --version 2>&1)); set PYTHON=/path/to/python3.11" >&2
+if [ -z "${PYTHON:-}" ]; then
+    for p in python3.11 python3.12 python3; do command -v "$p" >/dev/null 2>&1 && { PYTHON=$p; break; }; done
+fi
+if ! "${PYTHON:-python3}" -c 'import sys; sys.exit(0 if sys.version_info[:2] in ((3, 11), (3, 12)) else 1)'; then
+    echo "error: Python 3.11 or 3.12 is required (found $("${PYTHON:-python3}" --version 2>&1));" \
+         "set PYTHON=/path/to/python3.11" >&2
     exit 1
 fi
 
@@ -28,8 +30,11 @@ if [ ! -x .venv/bin/python ]; then
     "$PYTHON" -m venv .venv
 fi
 .venv/bin/python -m pip install -q --upgrade pip
-# torch first, pinned: the CPU wheel on this machine's disk (a loose pin pulls a CUDA build).
-if ! .venv/bin/python -c 'import torch, sys; sys.exit(0 if torch.__version__.startswith("2.13.0") else 1)' 2>/dev/null; then
+# torch first, pinned: the CPU wheel on this machine's disk (a loose pin pulls a CUDA build). A CUDA build of
+# torch >= 2.11 that is already in .venv stays (a GPU machine's, README 'On a GPU machine').
+if ! .venv/bin/python -c 'import torch, sys
+v = tuple(int(x) for x in torch.__version__.split("+")[0].split(".")[:2])
+sys.exit(0 if torch.__version__.startswith("2.13.0") or (torch.version.cuda and v >= (2, 11)) else 1)' 2>/dev/null; then
     echo "setup: installing torch==2.13.0"
     .venv/bin/python -m pip install -q torch==2.13.0
 fi

@@ -52,7 +52,8 @@ class Config:
     percentile of its valid depth, rounded up to 0.5 m, nerf/depth_poses.py icp_depth_limit_m). ICP's voxel and
     inlier distance grow with it. Set it only where the derived limit keeps too few or too noisy points."""
     workers: int = 0
-    """Dask workers for a local cluster (0 = one per core, at most one per window)."""
+    """Dask workers for a local cluster (0 = one per core on the CPU, one per GPU on 'cuda'; at most one per
+    window)."""
     threads_per_worker: int = 0
     """torch threads per worker (0 = cores / workers; then, once fewer windows are left than workers, the last
     windows also take the idle workers' cores, and fits reproduce to floating-point noise, not bit for bit)."""
@@ -263,16 +264,17 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
     payloads = {}
     colmap = inputs.get("colmap_poses")
     dets = inputs.get("detections_filtered")
-    for wid in wids:
+    for i, wid in enumerate(wids):
         w = windows[windows.window_id == wid].merge(frames, on="frame_id", how="left")
         if w["rgb_path"].isna().any():
             raise ValueError(f"window {wid}: frames {w.loc[w.rgb_path.isna(), 'frame_id'].tolist()} not in frames.parquet")
         w = initial_poses(w, int(wid), colmap, cfg.pose_source)
-        payloads[str(wid)] = window_payload(int(wid), w, cfg, mcfg, ctx.device, out_dir, ctx.data_root,
+        device = parallel.spread_over_gpus(ctx.device, i)
+        payloads[str(wid)] = window_payload(int(wid), w, cfg, mcfg, device, out_dir, ctx.data_root,
                                             window_detections(dets, w))
     # workers and threads follow the whole row, also when some windows are reused: a window's fit is then
     # computed with the same thread count as in an uninterrupted run
-    n_workers = cfg.workers or parallel.default_workers(len(payloads))
+    n_workers = cfg.workers or parallel.default_workers(len(payloads), ctx.device)
     threads = parallel.task_threads(cfg.threads_per_worker, n_workers)
     resume = ctx.resume_dir.resolve() if ctx.resume_dir is not None else None
     outcomes: dict[str, parallel.TaskOutcome] = {}
@@ -312,7 +314,7 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
         wid = int(key)
         centre = int(windows.loc[windows.window_id == wid, "center_frame_id"].iloc[0])
         w = windows[windows.window_id == wid]
-        base = {"window_id": wid, "center_frame_id": centre, "preset": mcfg.preset, "device": ctx.device,
+        base = {"window_id": wid, "center_frame_id": centre, "preset": mcfg.preset, "device": payloads[key]["device"],
                 "n_train": int((w.split == "train").sum()), "n_val": int((w.split == "val").sum()),
                 "worker": o.worker}
         if o.error is not None:

@@ -11,7 +11,6 @@ occlusion): no specular term, so every view of a surface point has the same colo
 from __future__ import annotations
 
 import numpy as np
-import open3d as o3d
 
 from synthetic import scene as S
 from synthetic.textures import fbm, smoothstep, value_noise
@@ -61,6 +60,8 @@ def _cast(scene: S.Scene, c2w: np.ndarray, dirs_cam: np.ndarray, nthreads: int) 
     rays = np.empty((len(d), 6), np.float32)
     rays[:, :3] = c2w[:3, 3]
     rays[:, 3:] = d
+    import open3d as o3d  # here, not at the top: the model stages import this module and must run without Open3D
+
     hit = scene.raycaster.cast_rays(o3d.core.Tensor.from_numpy(rays), nthreads=nthreads)
     t = hit["t_hit"].numpy()
     return {"t": t, "ok": np.isfinite(t), "prim": hit["primitive_ids"].numpy(), "uv": hit["primitive_uvs"].numpy(),

@@ -8,12 +8,15 @@ its material, semantic class, instance id (fruit id, 0 for stuff) and local fram
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
-import open3d as o3d
 
 from synthetic import meshes, season
 from synthetic.meshes import Mesh
+
+if TYPE_CHECKING:  # Open3D is imported where the scene is built, so the model stages run without it (a GPU machine)
+    import open3d as o3d
 
 FLOOR, WALL, PIPE, POST, STEM, LEAF, FRUIT = range(7)
 MATERIALS = ("floor", "wall", "pipe", "post", "stem", "leaf", "fruit")
@@ -116,6 +119,8 @@ class SceneBuilder:
         tris = np.concatenate([m.triangles + o for m, o in zip(self.meshes, offsets)]).astype(np.uint32)
         part = np.concatenate([np.full(len(m.triangles), i, np.int32) for i, m in enumerate(self.meshes)])
         normals = np.concatenate([m.corner_normals() for m in self.meshes]).astype(np.float32)
+        import open3d as o3d
+
         rc = o3d.t.geometry.RaycastingScene()
         rc.add_triangles(o3d.core.Tensor(verts), o3d.core.Tensor(tris))
         a = np.array(self.attrs)

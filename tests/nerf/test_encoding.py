@@ -277,7 +277,7 @@ def test_narrower_x86_builds_match_the_reference(env):
     assert done.returncode == 0 and "ok" in done.stdout, done.stderr[-2000:]
 
 
-@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+@pytest.mark.cuda
 @pytest.mark.parametrize("cls", [PermutoEncoding, CubicHashEncoding])
 def test_cuda_matches_cpu_reference(cls):
     cpu = cls(**KW, backend="torch")

@@ -12,7 +12,7 @@ from nerf.panoptic.losses import instance_loss
 from nerf.poses import rotation_6d
 from nerf.render import composite_weights, cone_steps, exclusive_cumsum_per_ray
 
-DEVICES = ["cpu", pytest.param("cuda", marks=pytest.mark.skipif(not torch.cuda.is_available(), reason="no GPU"))]
+DEVICES = ["cpu", pytest.param("cuda", marks=pytest.mark.cuda)]
 
 
 @pytest.mark.parametrize("device", DEVICES)
