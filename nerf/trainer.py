@@ -201,10 +201,9 @@ def fit_window(data: WindowData, cfg: NerfConfig, device: str = "cpu",
 def validate(res: FitResult, data: WindowData, render: Callable[[int], dict]) -> None:
     """Render every validation frame with `render(i)` (a dict with at least rgb [H, W, 3] and samples_per_ray)
     and fill res.renders (in host memory, also from a GPU; rgb as uint8 tensors, 0-255; opacity left out),
-    val_psnr, samples_per_ray and
-    render_s_per_image. A render made at a working scale carries its colour at that scale as "rgb_working"
-    [h, w, 3] (not kept in res.renders): its PSNR is measured there, against the recorded image area-averaged
-    to that size."""
+    val_psnr, samples_per_ray and render_s_per_image. A render made at a working scale carries its colour at that
+    scale as "rgb_working" [h, w, 3] (not kept in res.renders): its PSNR is measured there, against the recorded
+    image area-averaged to that size."""
     import cv2
 
     spr, render_s = [], []

@@ -29,8 +29,8 @@ class RunConfig:
     """Settings of the run itself (section `run`)."""
 
     device: str = "auto"
-    """torch device for the model stages: 'auto' (the first GPU when torch sees one, else the CPU), 'cpu', 'cuda'
-    or 'cuda:N'."""
+    """torch device for the model stages: 'auto' ('cuda' where torch sees a GPU, else 'cpu'), 'cpu', 'cuda' (every
+    GPU, one nerf_fit worker each) or 'cuda:N' (GPU N only)."""
     scheduler: str = ""
     """dask.distributed scheduler address for nerf_fit ('' = start a local cluster)."""
     progress: bool = True

@@ -40,7 +40,7 @@ class PipelineError(RuntimeError):
 
 
 def torch_device(name: str) -> str:
-    """The torch device that run.device names: 'auto' is the first GPU when torch sees one, else the CPU. A GPU
+    """The torch device that run.device names: 'auto' is 'cuda' (the GPUs) where torch sees one, else 'cpu'. A GPU
     that torch does not see is an error, not a silent run on the CPU."""
     import torch
 
