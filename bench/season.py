@@ -28,6 +28,8 @@ from pipeline import io, season
 from pipeline.catalog import dataset
 from pipeline.classes import class_name
 from pipeline.runner import Runner
+from rowmap.structure import structure_of_frames
+from stages.fruit_count import Config as FruitCount
 
 ORACLE_NOISE = {"position_m": 0.004, "diameter_m": 0.003, "miss_rate": 0.03}
 """Measurement noise of --oracle fruits: centre and diameter standard deviations, and the share of fruits missed."""
@@ -55,7 +57,8 @@ def _fill(df: pd.DataFrame, table: str) -> pd.DataFrame:
 def oracle_row(data_root: Path, seq: str, rng: np.random.Generator) -> None:
     """Write fruits.parquet and panoptic_frames.parquet of an ingested synthetic row from its ground truth:
     each fruit placed in the row's odometry frame through the frame whose true camera x is nearest it, plus
-    ORACLE_NOISE."""
+    ORACLE_NOISE; and its structure.parquet from the recorded depth and the detector's labels, placed the same
+    way (a map as the pipeline's refined poses give it: consistent within itself, in the odometry's frame)."""
     from rowmap.ground_truth import gt_poses_by_frame
 
     frames = io.read_table(dataset("frames").path(data_root, seq), "frames")
@@ -85,6 +88,18 @@ def oracle_row(data_root: Path, seq: str, rng: np.random.Generator) -> None:
     out.parent.mkdir(parents=True, exist_ok=True)
     io.write_table(_fill(fruits, "fruits"), out, "fruits")
     io.write_table(_fill(pf, "panoptic_frames"), dataset("panoptic_frames").path(data_root, seq), "panoptic_frames")
+    # the structure as the fruits: true points, each placed through the frame whose true camera x is nearest
+    gt_c2w = pose_matrix(frames[["frame_id"]].merge(by_frame, on="frame_id")[cols].to_numpy())
+    if len(gt_c2w) != len(frames):
+        raise ValueError(f"{seq}: gt/poses.parquet has no pose for {len(frames) - len(gt_c2w)} frames")
+    cam_x = both.tx_gt.to_numpy()
+
+    def place(p: np.ndarray) -> np.ndarray:
+        k = np.abs(cam_x[None] - p[:, :1]).argmin(1)
+        return np.einsum("fij,fj->fi", rel[k, :3, :3], p) + rel[k, :3, 3]
+
+    io.write_table(structure_of_frames(frames, data_root, FruitCount.max_depth_m, gt_c2w, place),
+                   dataset("structure").path(data_root, seq), "structure")
 
 
 def run_season(data_root: Path, seed: int, days: list[int], synth_sets: list[str], track_sets: list[str],

@@ -52,6 +52,7 @@ DATASETS: dict[str, Dataset] = {
         _t("fruits", "processed", "one row per fruit of the row"),
         _t("counts", "processed", "fruit counts per class"),
         Dataset("fruit_map", "dir", "processed", "fruit_map", "fruit point cloud PLY"),
+        _t("structure", "processed", "the row's static surfaces (stems, leaves, floor) as a voxel cloud"),
         _t("evaluation", "processed", "scores against ground truth"),
         Dataset("report", "dir", "processed", "report", "report.html and figures"),
     )

@@ -77,7 +77,9 @@ def load_date(data_root: Path, seq: str, date: dt.date | None) -> tuple[DateRows
     if date is None:
         date, _ = recording_date(seq, int(frames.stamp_ns.min()) if len(frames) else None)
     counted = fruits[fruits.counted.astype(bool) & fruits.near_row.astype(bool)].reset_index(drop=True)
-    return DateRows(seq, date, 0.0, counted, pf[["tx", "ty", "tz"]].to_numpy(np.float64)), frames, pf
+    spath = dataset("structure").path(data_root, seq)   # rows fitted before fruit_count wrote it have none
+    struct = io.read_table(spath, "structure")[["x_m", "y_m", "z_m"]].to_numpy(np.float64) if spath.is_file() else None
+    return DateRows(seq, date, 0.0, counted, pf[["tx", "ty", "tz"]].to_numpy(np.float64), struct), frames, pf
 
 
 def set_days(rows: list[DateRows], first_stamps_ns: list[int | None]) -> None:

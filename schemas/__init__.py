@@ -26,6 +26,7 @@ TABLES: tuple[str, ...] = (
     "fruit_slots",
     "fruits",
     "counts",
+    "structure",
     "evaluation",
     "campaign_rows",
     "fruit_tracks",

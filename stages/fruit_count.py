@@ -22,9 +22,10 @@ from rowmap.colours import id_colours
 from rowmap.geometry import runs_by_key, subsample, with_sensor_depth
 from rowmap.renders import read_depth
 from rowmap.scoring import reference_pixels
+from rowmap.structure import VoxelCloud, frame_points
 
 INPUTS = ("frames", "nerf", "panoptic_frames", "panoptic", "fruit_slots", "images")
-OUTPUTS = ("fruits", "counts", "fruit_map")
+OUTPUTS = ("fruits", "counts", "fruit_map", "structure")
 
 
 @dataclass(frozen=True)
@@ -252,9 +253,12 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
     checked: dict[int, int] = defaultdict(int)      # fused frames with a detector image, per fruit
     confirmed: dict[int, int] = defaultdict(int)    # ... of them where the detector's segments cover the fruit
 
-    def unproject_frame(r) -> tuple[int, list[tuple]]:
+    structure = VoxelCloud()                        # the row's stuff surfaces, for registering dates
+
+    def unproject_frame(r) -> tuple[int, list[tuple], tuple[np.ndarray, np.ndarray]]:
         """Fused frame r's fruits (on a worker thread): (frame id, [(fruit, reference pixels with depth, whether
-        the detector covers it (None: no detector image), its majority class, its depths, its points)])."""
+        the detector covers it (None: no detector image), its majority class, its depths, its points)], the
+        frame's stuff points and classes)."""
         fid = int(r.frame_id)
         if fid not in frames.index:
             raise ValueError(f"fruit_count: panoptic_frames frame {fid} is not in frames.parquet")
@@ -289,10 +293,11 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
                 pts = unproject(depth, k, c2w, vv[good][pick], uu[good][pick])
             found.append((int(ids[s0]), float(reference_pixels(int(good.sum()), inst.size)), covered,
                           int(np.bincount(sem[vv, uu]).argmax()), d[good], pts))
-        return fid, found
+        return fid, found, frame_points(depth, sem, k, c2w, cfg.max_depth_m)
 
     read_all = in_order(unproject_frame, pf.itertuples(index=False), available_cores())
-    for fid, found in ctx.progress(read_all, "unproject fruits", total=len(pf)):
+    for fid, found, stuff in ctx.progress(read_all, "unproject fruits", total=len(pf)):
+        structure.add(*stuff)
         for fruit, px, covered, vote, d, pts in found:
             seen[fruit].append(fid)
             ref_px[fruit] += px
@@ -385,4 +390,6 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
     ctx.summary.update(fruits=len(fruits), counted=len(near), far_row=n_far, fragments=n_frag, unconfirmed=len(unconf),
                        oversize=len(too_wide), lone_fragments=len(lone),
                        **{f"count_{c}": int(n) for c, n in zip(counts.class_name, counts["count"])})
-    return {"fruits": fruits, "counts": counts}
+    table = structure.table()
+    ctx.summary["structure_voxels"] = len(table)
+    return {"fruits": fruits, "counts": counts, "structure": table}

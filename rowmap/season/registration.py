@@ -1,15 +1,16 @@
-"""Register one date's row frame onto the season frame (the first date's) from the fruits both dates show.
+"""Register one date's row frame onto the season frame (the first date's): on the rows' static structure
+(`register_structure`, rowmap/structure.py) where both sides have one, else on the fruits both dates show.
 
 Odometry origins differ between dates (the robot starts elsewhere) and fruits grow, are picked and set, so
-the transform is found by consensus: every pairing of a moving fruit with a fixed fruit of a compatible
-size and height proposes a translation; the one most other fruits agree with (within `seed_inlier_m`)
-wins, and a few rounds of least squares over mutual nearest neighbours, with a shrinking inlier radius,
+on the fruits the transform is found by consensus (`register`): every pairing of a moving fruit with a fixed
+fruit of a compatible size and height proposes a translation; the one most other fruits agree with (within
+`seed_inlier_m`) wins, and a few rounds of least squares over mutual nearest neighbours, with a shrinking inlier radius,
 refine x, y, z and yaw (the row frames are gravity-aligned: roll and pitch are not estimated).
 
 Each date's row frame drifts along the row with its own odometry (a few cm per metre), so no single rigid
 transform fits a whole row to within a centimetre. On top of the rigid transform a smooth correction along
-the row takes up the rest: at a point with row coordinate x, c(x) = a from a local linear fit of the paired
-fruits' residuals r_i at x_i,
+the row takes up the rest: at a point with row coordinate x, c(x) = a from a local linear fit of the anchors'
+residuals r_i at x_i (the paired fruits; with the structure, also each stretch's own alignment),
 
     min_{a, b} sum_i w_i |r_i - a - b (x_i - x)|^2 + PRIOR_WEIGHT (|a|^2 + h^2 |b|^2),
     w_i = exp(-(x_i - x)^2 / (2 h^2)),  h = max(bandwidth_m, distance to the MIN_NEIGHBOURS-th nearest x_i),
@@ -23,6 +24,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from rowmap import structure as st
 
 GROW_ROUNDS = 4
 """Rounds of pairing at the seed radius, each with the correction of the round before."""
@@ -135,6 +137,39 @@ def register(moving: np.ndarray, fixed: np.ndarray, moving_d: np.ndarray, fixed_
             moving[i].mean(0, keepdims=True), fixed[j].mean(0, keepdims=True))  # yaw needs a spread of pairs
         rigid = apply(t, moving[i])
         reg = Registration(t, 0, float("nan"), rigid[:, 0], fixed[j] - rigid, bandwidth_m)
-    i, j = _mutual_nearest(reg(moving), fixed, final_inlier_m)
+    return agreement(reg, moving, fixed, final_inlier_m)
+
+
+def agreement(reg: Registration, moving: np.ndarray, fixed: np.ndarray, inlier_m: float) -> Registration:
+    """`reg` with its inliers and rms_m counted over the mutual nearest pairs of `moving` [M, 3] (through reg) and
+    `fixed` [F, 3] within inlier_m."""
+    if len(moving) == 0 or len(fixed) == 0:
+        return Registration(reg.transform, 0, float("nan"), reg.anchors_x, reg.residuals, reg.bandwidth_m)
+    i, j = _mutual_nearest(reg(moving), fixed, inlier_m)
     rms = float(np.sqrt(np.mean(np.sum((reg(moving[i]) - fixed[j]) ** 2, 1)))) if len(i) else float("nan")
-    return Registration(reg.transform, int(len(i)), rms, reg.anchors_x, reg.residuals, bandwidth_m)
+    return Registration(reg.transform, int(len(i)), rms, reg.anchors_x, reg.residuals, reg.bandwidth_m)
+
+
+def register_structure(moving: st.Structure, fixed: st.Structure, fruit_reg: Registration, max_shift_m: float,
+                       bandwidth_m: float, fruits: tuple[np.ndarray, np.ndarray] | None = None,
+                       inlier_m: float = 0.02) -> tuple[Registration, float]:
+    """(registration of the `moving` date's structure onto the `fixed` structure of the dates before it, the
+    share of its structure points that agree within the ICP's last radius). The rigid part is the ICP
+    (rowmap/structure.py align_yaw_shift) that ends with the most agreeing points, started from the structure's
+    own coarse shift and from the fruits' registration where their consensus found pairs. The correction along
+    the row is fitted to each stretch's own alignment (local_offsets, every half bandwidth_m) together with
+    the residuals of the fruit pairs `fruits` = (moving [M, 3], fixed [F, 3]) that agree within inlier_m."""
+    shift, _ = st.coarse_shift(moving.points, fixed.points, max_shift_m)
+    inits = [np.eye(4)]
+    inits[0][:3, 3] = shift
+    if fruit_reg.inliers >= 3:
+        inits.append(fruit_reg.transform)
+    t, share, _ = max((st.align_yaw_shift(moving, fixed, init) for init in inits), key=lambda r: r[1])
+    xs, offsets = st.local_offsets(apply(t, moving.points), fixed, bandwidth_m / 2)
+    reg = Registration(t, 0, float("nan"), xs, offsets, bandwidth_m)
+    if fruits is not None and len(fruits[0]) and len(fruits[1]):
+        i, j = _mutual_nearest(reg(fruits[0]), fruits[1], inlier_m)
+        rigid = apply(t, fruits[0][i])
+        reg = Registration(t, 0, float("nan"), np.concatenate([xs, rigid[:, 0]]),
+                           np.concatenate([offsets, fruits[1][j] - rigid]), bandwidth_m)
+    return reg, share

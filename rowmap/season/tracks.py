@@ -24,6 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 import pandas as pd
 
+from rowmap import structure
 from rowmap.season import association, registration
 
 RIPENESS_RANK = {"fruit_green": 0, "fruit_mixed": 1, "fruit_red": 2}
@@ -61,6 +62,10 @@ class Config:
     warp_bandwidth_m: float = 0.3
     """length along the row (m, > 0) over which the registration's correction of the rows' different odometry
     drift is smoothed (registration.py): smaller follows faster-changing drift, larger averages more fruits."""
+    registration: str = "structure"
+    """what each later date is registered on: 'structure' (its stems, leaves and floor, the rows'
+    structure.parquet, where it and the dates before it have one, with the fruit pairs that agree; else its
+    fruits) or 'fruits' (the fruits' consensus alone, which needs a few fruits that both dates show)."""
     edge_margin_m: float = 0.05
     """the stretch of row a date recorded is its cameras' x range less this margin at each end (m, >= 0);
     set and harvest events are only judged inside it."""
@@ -69,6 +74,8 @@ class Config:
         for name in ("gate_m", "size_tolerance_m", "max_shift_m", "set_max_diameter_m", "warp_bandwidth_m"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"track.{name} must be > 0, got {getattr(self, name)}")
+        if self.registration not in ("structure", "fruits"):
+            raise ValueError(f"track.registration must be 'structure' or 'fruits', got {self.registration!r}")
         for name in ("growth_mm_per_day", "max_missed_dates", "edge_margin_m"):
             if getattr(self, name) < 0:
                 raise ValueError(f"track.{name} must be >= 0, got {getattr(self, name)}")
@@ -86,6 +93,8 @@ class DateRows:
     """the row's fruits.parquet, counted fruits only: fruit_id, x_m, y_m, z_m, diameter_m, class_name."""
     cameras_xyz: np.ndarray
     """[K, 3] the fused frames' camera positions in the row frame (panoptic_frames)."""
+    structure: np.ndarray | None = None
+    """[S, 3] the row's static structure in the row frame (structure.parquet voxel means), None if it has none."""
 
 
 @dataclass
@@ -98,6 +107,8 @@ class Season:
     """season_dates (schemas/season_dates.py)."""
     transforms: list[registration.Registration]
     """row frame -> season frame per date, in date order (callable on [N, 3] points)."""
+    registered_on: list[str]
+    """per date, in date order: 'first date', 'structure' or 'fruits'."""
 
 
 @dataclass
@@ -134,8 +145,9 @@ def track_season(dates: list[DateRows], cfg: Config) -> Season:
     dates = sorted(dates, key=lambda r: r.day)
     gates = association.Gates(cfg.gate_m, cfg.size_tolerance_m, cfg.growth_mm_per_day / 1000)
     tracks: list[_Track] = []
-    transforms, regs = [], []
+    transforms, regs, how = [], [], []
     positions = []
+    fixed_structure: list[np.ndarray] = []   # the structure of the dates so far, in the season frame
     for k, row in enumerate(dates):
         f = row.fruits.reset_index(drop=True)
         centres = f[["x_m", "y_m", "z_m"]].to_numpy(np.float64)
@@ -143,12 +155,10 @@ def track_season(dates: list[DateRows], cfg: Config) -> Season:
         xyz = stem_side_points(centres, d, row.cameras_xyz)
         rank = _ranks(f["class_name"])
         open_ = [t for t in tracks if k - t.last - 1 <= cfg.max_missed_dates]
-        if k == 0:
-            reg = registration.IDENTITY
-        else:
-            reg = registration.register(xyz, np.array([t.xyz for t in open_]).reshape(-1, 3),
-                                        d, np.array([t.diameter_m for t in open_]), cfg.max_shift_m,
-                                        final_inlier_m=min(0.02, cfg.gate_m), bandwidth_m=cfg.warp_bandwidth_m)
+        reg, on = _register(row, k, xyz, d, open_, fixed_structure, cfg)
+        how.append(on)
+        if row.structure is not None and len(row.structure):
+            fixed_structure.append(reg(row.structure))
         transforms.append(reg)
         regs.append(reg)
         reg_xyz = reg(xyz)
@@ -182,7 +192,30 @@ def track_season(dates: list[DateRows], cfg: Config) -> Season:
     for row, t in zip(dates, transforms):
         cx = t(row.cameras_xyz)[:, 0] if len(row.cameras_xyz) else np.zeros(0)
         stretches.append((cx.min() + cfg.edge_margin_m, cx.max() - cfg.edge_margin_m) if len(cx) else (np.inf, -np.inf))
-    return _tables(dates, tracks, positions, stretches, transforms, regs, cfg)
+    return _tables(dates, tracks, positions, stretches, transforms, regs, how, cfg)
+
+
+def _register(row: DateRows, k: int, xyz: np.ndarray, d: np.ndarray, open_: list[_Track],
+              fixed_structure: list[np.ndarray], cfg: Config) -> tuple[registration.Registration, str]:
+    """Date k's registration onto the season frame and what it rests on ('first date', 'structure', 'fruits'):
+    the fruits' consensus onto the open tracks, then, with cfg.registration 'structure' and enough structure on
+    both sides, the structure's (registration.register_structure: it may start from the fruits' result, and
+    the fruit pairs that agree join its correction along the row)."""
+    if k == 0:
+        return registration.IDENTITY, "first date"
+    open_xyz = np.array([t.xyz for t in open_]).reshape(-1, 3)
+    inlier_m = min(0.02, cfg.gate_m)
+    reg = registration.register(xyz, open_xyz, d, np.array([t.diameter_m for t in open_]), cfg.max_shift_m,
+                                final_inlier_m=inlier_m, bandwidth_m=cfg.warp_bandwidth_m)
+    if cfg.registration != "structure" or row.structure is None or not fixed_structure:
+        return reg, "fruits"
+    moving = structure.Structure.from_points(row.structure)
+    fixed = structure.Structure.from_points(np.concatenate(fixed_structure))
+    if min(len(moving), len(fixed)) < structure.MIN_POINTS:
+        return reg, "fruits"
+    reg, _ = registration.register_structure(moving, fixed, reg, cfg.max_shift_m, cfg.warp_bandwidth_m,
+                                             (xyz, open_xyz), inlier_m)
+    return registration.agreement(reg, xyz, open_xyz, inlier_m), "structure"
 
 
 def _inside(x: float, stretch: tuple[float, float]) -> bool:
@@ -199,7 +232,7 @@ def growth_rate_mm_per_day(day: np.ndarray, diameter_m: np.ndarray) -> float:
 
 def _tables(dates: list[DateRows], tracks: list[_Track], positions: list[np.ndarray],
             stretches: list[tuple[float, float]], transforms: list[np.ndarray],
-            regs: list[registration.Registration], cfg: Config) -> Season:
+            regs: list[registration.Registration], how: list[str], cfg: Config) -> Season:
     rows, summary = [], []
     n = len(dates)
     for tid, t in enumerate(sorted(tracks, key=lambda t: (t.obs[0][0], positions[t.obs[0][0]][t.obs[0][1], 0])), 1):
@@ -249,10 +282,10 @@ def _tables(dates: list[DateRows], tracks: list[_Track], positions: list[np.ndar
             seq=row.seq, date=row.date, day=row.day, fruits=len(row.fruits),
             continued=int((on.fruit_id.notna() & (on.track_id.map(first_day) < row.day)).sum()),
             set=int((on.event == "set").sum()), harvested=int((on.event == "harvested").sum()),
-            registration_inliers=reg.inliers, registration_rms_m=reg.rms_m,
+            registered_on=how[k], registration_inliers=reg.inliers, registration_rms_m=reg.rms_m,
             tx_m=float(t.transform[0, 3]), ty_m=float(t.transform[1, 3]), tz_m=float(t.transform[2, 3]),
             yaw_deg=float(np.degrees(np.arctan2(t.transform[1, 0], t.transform[0, 0]))),
             correction_max_m=float(np.linalg.norm(t(row.cameras_xyz) - registration.apply(t.transform, row.cameras_xyz),
                                                   axis=1).max()) if len(row.cameras_xyz) else 0.0,
             stretch_x_min_m=float(stretches[k][0]), stretch_x_max_m=float(stretches[k][1])))
-    return Season(tracks_df, summary_df, pd.DataFrame(per_date), transforms)
+    return Season(tracks_df, summary_df, pd.DataFrame(per_date), transforms, how)

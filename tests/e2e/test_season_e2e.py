@@ -51,6 +51,8 @@ def test_track_writes_the_season_dataset(oracle):
     assert set(summary.track_id) == set(tracks.track_id) and (summary.n_dates >= 1).all()
     dates = pd.read_parquet(season_dir / "season_dates.parquet")
     assert list(dates.seq) == seqs and dates.tx_m.iloc[0] == 0.0 and (dates.registration_inliers.iloc[1:] > 0).all()
+    # each later date rests on the rows' structure (structure.parquet, written with the oracle's fruits)
+    assert list(dates.registered_on) == ["first date"] + ["structure"] * (len(DAYS) - 1)
     # a later day starts elsewhere: the registration finds the shift (odometry origins differ)
     assert (dates.tx_m.iloc[1:].abs() > 0.001).all()
     assert (season_dir / "report.html").stat().st_size > 10_000

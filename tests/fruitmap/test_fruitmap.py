@@ -805,3 +805,17 @@ def test_a_fruit_wider_than_any_fruit_of_the_crop_is_not_counted():
     assert not fruit_count.oversize(two["diameter_m"], fruit_count.Config(max_count_diameter_m=1e6))  # off
     with pytest.raises(ValueError, match="max_count_diameter_m"):
         fruit_count.Config(max_count_diameter_m=0)
+
+
+def test_the_structure_holds_the_rows_stuff_surfaces_and_leaves_the_fruits_out(perfect_row):
+    """structure.parquet (what `pag track` registers dates on): the plants' stems and leaves (this row's
+    camera sees no floor within fruit_count.max_depth_m), no fruit surface."""
+    s = pd.read_parquet(perfect_row.processed / "structure.parquet")
+    assert len(s) > 500 and set(s.class_id) <= {0, 1} and (s.n_points >= 1).all()
+    xyz = s[["x_m", "y_m", "z_m"]].to_numpy(np.float64)
+    cams = pd.read_parquet(perfect_row.processed / "panoptic_frames.parquet")[["tx", "ty", "tz"]].to_numpy()
+    assert np.linalg.norm(xyz[:, None] - cams[None], axis=2).min(1).max() < 1.5      # seen within max_depth_m
+    gt = perfect_row.gt_fruits
+    d = np.linalg.norm(xyz[:, None] - gt[["x_m", "y_m", "z_m"]].to_numpy()[None], axis=2) / gt.diameter_m.to_numpy()
+    inside = (d < 0.45).any(1)                                             # within a fruit's surface
+    assert inside.mean() < 0.005, inside.sum()
