@@ -29,7 +29,6 @@ from pipeline.catalog import dataset
 from pipeline.classes import class_name
 from pipeline.runner import Runner
 from rowmap.structure import structure_of_frames
-from stages.fruit_count import Config as FruitCount
 
 ORACLE_NOISE = {"position_m": 0.004, "diameter_m": 0.003, "miss_rate": 0.03}
 """Measurement noise of --oracle fruits: centre and diameter standard deviations, and the share of fruits missed."""
@@ -54,11 +53,11 @@ def _fill(df: pd.DataFrame, table: str) -> pd.DataFrame:
     return pd.DataFrame(out, index=df.index)
 
 
-def oracle_row(data_root: Path, seq: str, rng: np.random.Generator) -> None:
+def oracle_row(data_root: Path, seq: str, rng: np.random.Generator, max_depth_m: float) -> None:
     """Write fruits.parquet and panoptic_frames.parquet of an ingested synthetic row from its ground truth:
     each fruit placed in the row's odometry frame through the frame whose true camera x is nearest it, plus
-    ORACLE_NOISE; and its structure.parquet from the recorded depth and the detector's labels, placed the same
-    way (a map as the pipeline's refined poses give it: consistent within itself, in the odometry's frame)."""
+    ORACLE_NOISE; and its structure.parquet (stuff within max_depth_m, the row's fruit_count.max_depth_m) from
+    the recorded depth and the detector's labels, placed the same way (a map as the pipeline's refined poses give it: consistent within itself, in the odometry's frame)."""
     from rowmap.ground_truth import gt_poses_by_frame
 
     frames = io.read_table(dataset("frames").path(data_root, seq), "frames")
@@ -98,7 +97,7 @@ def oracle_row(data_root: Path, seq: str, rng: np.random.Generator) -> None:
         k = np.abs(cam_x[None] - p[:, :1]).argmin(1)
         return np.einsum("fij,fj->fi", rel[k, :3, :3], p) + rel[k, :3, 3]
 
-    io.write_table(structure_of_frames(frames, data_root, FruitCount.max_depth_m, gt_c2w, place),
+    io.write_table(structure_of_frames(frames, data_root, max_depth_m, gt_c2w, place),
                    dataset("structure").path(data_root, seq), "structure")
 
 
@@ -113,7 +112,7 @@ def run_season(data_root: Path, seed: int, days: list[int], synth_sets: list[str
         names = [s.name for s in runner.active()]
         runner.run(["synth", "ingest"] if oracle else names)
         if oracle:
-            oracle_row(data_root, seq, np.random.default_rng([seed, day, 99]))
+            oracle_row(data_root, seq, np.random.default_rng([seed, day, 99]), runner.config["fruit_count"].max_depth_m)
         seqs.append(seq)
     _, scores, _ = season.track(seqs, data_root, track_sets, name=f"_season_{name}_s{seed}")
     return scores
