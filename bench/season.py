@@ -57,7 +57,8 @@ def oracle_row(data_root: Path, seq: str, rng: np.random.Generator, max_depth_m:
     """Write fruits.parquet and panoptic_frames.parquet of an ingested synthetic row from its ground truth:
     each fruit placed in the row's odometry frame through the frame whose true camera x is nearest it, plus
     ORACLE_NOISE; and its structure.parquet (stuff within max_depth_m, the row's fruit_count.max_depth_m) from
-    the recorded depth and the detector's labels, placed the same way (a map as the pipeline's refined poses give it: consistent within itself, in the odometry's frame)."""
+    the recorded depth and the detector's labels, placed the same way (a map as the pipeline's refined poses
+    give it: consistent within itself, in the odometry's frame)."""
     from rowmap.ground_truth import gt_poses_by_frame
 
     frames = io.read_table(dataset("frames").path(data_root, seq), "frames")

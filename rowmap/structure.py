@@ -99,13 +99,12 @@ class VoxelCloud:
                              np.zeros(0, np.int32)})
 
 
-def structure_of_frames(frames: pd.DataFrame, data_root: Path, max_depth_m: float, c2w: np.ndarray | None = None,
-                        place=None) -> pd.DataFrame:
-    """The structure table of a row from its frames table alone: each frame's recorded depth and its detector's
-    semantic labels, un-projected with the frame's odometry pose or with `c2w` [N, 4, 4] (one per frame), then
-    through `place` (a function of points [M, 3]) if given. For a row without fused frames (fruit_count uses the
-    fused ones). Frames without a detector semantic image are skipped."""
-    from nerf.geometry import pose_matrix
+def structure_of_frames(frames: pd.DataFrame, data_root: Path, max_depth_m: float, c2w: np.ndarray,
+                        place) -> pd.DataFrame:
+    """The structure table of a row from its frames table and given poses, for a row without fused frames
+    (fruit_count uses the fused ones): each frame's recorded depth and its detector's semantic labels,
+    un-projected with `c2w` [N, 4, 4] (one per frame), then through `place` (a function of points [M, 3]).
+    Frames without a detector semantic image are skipped."""
     from pipeline.images import read_depth_m, read_label
 
     cloud = VoxelCloud()
@@ -114,10 +113,8 @@ def structure_of_frames(frames: pd.DataFrame, data_root: Path, max_depth_m: floa
             continue
         depth = read_depth_m(Path(data_root) / r.depth_path, r.depth_scale_m)
         sem = read_label(Path(data_root) / r.det_semantic_path, "detector semantic")
-        pose = c2w[i] if c2w is not None else pose_matrix(np.array([r.tx, r.ty, r.tz, r.qx, r.qy, r.qz, r.qw],
-                                                                    np.float64))
-        pts, cls = frame_points(depth, sem, np.array([r.fx, r.fy, r.cx, r.cy], np.float64), pose, max_depth_m)
-        cloud.add(pts if place is None else place(pts), cls)
+        pts, cls = frame_points(depth, sem, np.array([r.fx, r.fy, r.cx, r.cy], np.float64), c2w[i], max_depth_m)
+        cloud.add(place(pts), cls)
     return cloud.table()
 
 
