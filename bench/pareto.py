@@ -16,8 +16,8 @@ settings; and `pareto.png`.
 
 `--stage` fits every point as the nerf_fit stage does (its model settings and step counts, depth-ICP initial
 poses, renders at its working scale, scored there against the ground truth taken to that size) with every
-validation frame, and its points (STAGE_POINTS) are cheaper variants of those settings: fewer steps, a longer
-marching step, earlier termination. It writes `pareto_stage.parquet` and `pareto_stage.png`: at 1280x720
+validation frame, and its points (STAGE_POINTS) are variants of those settings: fewer steps, a longer
+marching step, earlier termination, other learning rates (grid / decoders) and a smaller table. It writes `pareto_stage.parquet` and `pareto_stage.png`: at 1280x720
 (`--seq synth_bup20 --window 0`) this is the scale bench the step budget is chosen on.
 
 `--fronts LABEL=PARQUET ...` fits nothing: it puts the points of earlier runs (the same window, e.g. the old and
@@ -67,6 +67,9 @@ STAGE_POINTS = [
     ("1/2 of the steps", "", dict(steps_factor=0.5)),
     ("1.5x marching step", "", dict(step_factor=1.5)),
     ("early stop at T < 1e-2", "", dict(train_early_stop=0.01)),
+    ("decoders' rate 2e-2", "", dict(lr_mlp=2e-2)),
+    ("rates 3e-2 / 2e-2", "", dict(lr_grid=3e-2, lr_mlp=2e-2)),
+    ("2^18 table, rates 3e-2 / 2e-2", "", dict(log2_capacity=18, lr_grid=3e-2, lr_mlp=2e-2)),
 ]
 """--stage: nerf_fit's own settings (model, steps, ICP poses, working-scale renders) and cheaper variants."""
 MODES = {"quick": dict(colour_steps=100, panoptic_steps=80, val_frames=3),

@@ -94,12 +94,16 @@ def test_resize_nearest_takes_each_pixel_label_at_its_centre_for_any_dtype():
     np.testing.assert_array_equal(resize_nearest(a, a.shape), a)
 
 
-def test_stage_points_vary_only_the_cost_of_nerf_fit_settings():
+def test_stage_points_vary_only_the_cost_and_rates_of_nerf_fit_settings():
     from bench.pareto import MODES, STAGE_POINTS
+    from nerf.config import NerfConfig
 
     assert STAGE_POINTS[0][2] == {} and MODES["stage"]["val_frames"] == 0    # the reference: the stage unchanged
+    knobs = {"steps_factor", "step_factor", "train_early_stop", "lr_grid", "lr_mlp", "log2_capacity"}
     for _, preset_name, change in STAGE_POINTS[1:]:
-        assert preset_name == "" and set(change) <= {"steps_factor", "step_factor", "train_early_stop"}
+        assert preset_name == "" and change and set(change) <= knobs
+        fields = {k: v for k, v in change.items() if k in NerfConfig.__dataclass_fields__}
+        assert all(getattr(NerfConfig(), k) != v for k, v in fields.items())   # each point changes what it names
 
 
 def test_fronts_of_two_runs_count_renders_in_the_window_minutes_and_plot(tmp_path):
