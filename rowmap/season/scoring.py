@@ -16,7 +16,13 @@ then ask whether the tracks link the same true fruit:
 - growth-rate error: per track whose observations match one true fruit on >= 2 dates, |slope of the
   measured diameters - slope of the true diameters on the same dates|, in mm/week;
 - event F1: harvested and set events per consecutive pair of dates against the true ones of fruits inside
-  both dates' true recorded stretch (true camera x range less the tracker's edge margin).
+  both dates' true recorded stretch (true camera x range less the tracker's edge margin);
+- each wrong or missed event, put down to the rows or to the tracker (`<event>_errors_row`,
+  `<event>_errors_tracker`): a row error is a fruit a date's map lacks or adds where the event needs it (a
+  set fruit not counted on its date; a new track of a fruit counted on no earlier date although it was in
+  view, or of no true fruit; a harvested fruit not counted on the date before; a harvest called for a fruit
+  still in view but not counted, or for a track that ends on no true fruit); a tracker error is any other
+  (the fruits were counted and the linking or the event rules were wrong).
 """
 from __future__ import annotations
 
@@ -139,6 +145,7 @@ def score(season: Season, dates: list[DateRows], gts: list[GtDate], match_max_m:
     out["growth_error_median_mm_per_week"] = float(np.median(gerr)) if gerr else float("nan")
     # events
     counts = {"harvested": [0, 0, 0], "set": [0, 0, 0]}
+    blame = {f"{e}_errors_{w}": 0 for e in ("harvested", "set") for w in ("row", "tracker")}
     for k in range(n - 1):
         a, b = gts[k], gts[k + 1]
         if b.season is None:
@@ -154,6 +161,7 @@ def score(season: Season, dates: list[DateRows], gts: list[GtDate], match_max_m:
         seq_b = dates[k + 1].seq
         pred_h, pred_s = set(), set()
         fp_h = fp_s = 0
+        counted_a, counted_b = set(to_gt[k].values()), set(to_gt[k + 1].values())
         for tid in tr[(tr.seq == seq_b) & (tr.event == "harvested")].track_id:
             last = obs[(obs.track_id == tid) & (obs.k == k)]
             gid = int(last.true_id.iloc[0]) if len(last) else -1
@@ -161,12 +169,23 @@ def score(season: Season, dates: list[DateRows], gts: list[GtDate], match_max_m:
                 pred_h.add(gid)
             else:
                 fp_h += 1
+                row = gid < 0 or (gid in pb.index and gid not in counted_b)     # no true fruit, or one missed
+                blame["harvested_errors_row" if row else "harvested_errors_tracker"] += 1
         for _, r in tr[(tr.seq == seq_b) & (tr.event == "set")].iterrows():
             gid = to_gt[k + 1].get(int(r.fruit_id), -1)
             if gid in true_s and gid not in pred_s:
                 pred_s.add(gid)
             else:
                 fp_s += 1
+                # no true fruit, or a fruit in view before that no earlier date counted
+                before = set().union(*(to_gt[j].values() for j in range(k + 1)))
+                row = gid < 0 or (any(gid in pops[j].index for j in range(k + 1)) and gid not in before)
+                blame["set_errors_row" if row else "set_errors_tracker"] += 1
+        missed_h, missed_s = true_h - pred_h, true_s - pred_s
+        blame["harvested_errors_row"] += len(missed_h - counted_a)
+        blame["harvested_errors_tracker"] += len(missed_h & counted_a)
+        blame["set_errors_row"] += len(missed_s - counted_b)
+        blame["set_errors_tracker"] += len(missed_s & counted_b)
         for key, tp, fp, fn in (("harvested", len(pred_h), fp_h, len(true_h - pred_h)),
                                 ("set", len(pred_s), fp_s, len(true_s - pred_s))):
             counts[key][0] += tp
@@ -176,6 +195,7 @@ def score(season: Season, dates: list[DateRows], gts: list[GtDate], match_max_m:
         out[f"{key}_events_true"] = float(tp + fn)
         out[f"{key}_events_pred"] = float(tp + fp)
         out[f"{key}_f1"] = _f1(tp, fp, fn)
+    out.update({key: float(v) for key, v in blame.items()})
     tp, fp, fn = (sum(v[i] for v in counts.values()) for i in range(3))
     out["event_f1"] = _f1(tp, fp, fn)
     return out

@@ -215,3 +215,45 @@ def test_the_plant_side_of_a_growing_fruit_stays_put():
     side = stem_side_points(centres, d, cams)
     np.testing.assert_allclose(side[:, 1], stem_y, atol=1e-3)
     np.testing.assert_allclose(side[:, [0, 2]], centres[:, [0, 2]], atol=1e-3)
+
+
+def test_event_errors_are_put_down_to_the_rows_or_to_the_tracker():
+    """A three-date season with known misses: fruit 2 missed once (its track continues, no event), set fruit 5
+    not counted on its date (set missed, then a wrong set: the row's), a false fruit 9 (a wrong set: the row's),
+    fruit 7 missed on the last date (a wrong harvest: the row's), fruit 8 measured 3 cm smaller on the last
+    date, more than the tracker lets a track shrink (a wrong set and a wrong harvest: the tracker's)."""
+    from rowmap.season.scoring import GtDate, score
+
+    xs = {1: 0.30, 2: 0.47, 3: 0.71, 4: 0.86, 5: 1.12, 6: 1.27, 7: 1.55, 8: 1.74}   # uneven: one consensus
+    set_day = {1: 0, 2: 0, 3: 0, 4: 3, 5: 4, 6: 10, 7: 0, 8: 0}
+    season = pd.DataFrame({"fruit_id": list(xs), "set_day": [float(set_day[i]) for i in xs],
+                           "harvest_day": [5.0 if i == 3 else np.nan for i in xs]})
+    in_view = {0: [1, 2, 3, 7, 8], 7: [1, 2, 4, 5, 7, 8], 14: [1, 2, 4, 5, 6, 7, 8]}
+    counted = {0: [1, 2, 3, 7, 8], 7: [1, 4, 7, 8], 14: [1, 2, 4, 5, 6, 8, 9]}
+    cams = np.stack([np.linspace(0.0, 2.0, 30), np.zeros(30), np.full(30, 0.75)], 1)
+    dates, gts = [], []
+    for day in (0, 7, 14):
+        where = {i: np.array([xs.get(i, 1.63), 0.6 if i != 9 else 0.8, 0.8]) for i in counted[day]}
+        xyz = np.array([where[i] for i in counted[day]])
+        d = [0.03 if set_day.get(i, day) > 0 else 0.02 if (i, day) == (8, 14) else 0.05 for i in counted[day]]
+        names = ["fruit_red" if i in (3, 7) else "fruit_green" for i in counted[day]]
+        fruits = pd.DataFrame({"fruit_id": counted[day], "x_m": xyz[:, 0], "y_m": xyz[:, 1], "z_m": xyz[:, 2],
+                               "diameter_m": d, "class_name": names})
+        dates.append(DateRows(f"d{day}", dt.date(2020, 9, 1) + dt.timedelta(days=day), float(day), fruits, cams))
+        g = pd.DataFrame({"fruit_id": in_view[day], "x_m": [xs[i] for i in in_view[day]], "y_m": 0.6, "z_m": 0.8,
+                          "near_row": True, "n_frames_visible": 10, "diameter_m": 0.05})
+        gts.append(GtDate(float(day), g, season if day else None, xyz, np.repeat(np.eye(4)[None], 30, 0),
+                          cams[:, 0], cams[:, 0]))
+    s = track_season(dates, Config())
+    out = score(s, dates, gts, match_max_m=0.05, edge_margin_m=0.05)
+    # sets: 4 and 6 found; 5 missed on day 7 (not counted), 5 on day 14, 9 and 8 called set wrongly
+    assert (out["set_events_true"], out["set_events_pred"]) == (3, 5)
+    assert (out["set_errors_row"], out["set_errors_tracker"]) == (3, 1)
+    # harvests: 3 found; 7 (missed on the last date) and 8 (its track left behind) called wrongly
+    assert (out["harvested_events_true"], out["harvested_events_pred"]) == (1, 3)
+    assert (out["harvested_errors_row"], out["harvested_errors_tracker"]) == (1, 1)
+    for event in ("set", "harvested"):
+        true, pred = out[f"{event}_events_true"], out[f"{event}_events_pred"]
+        errors = out[f"{event}_errors_row"] + out[f"{event}_errors_tracker"]
+        tp = (true + pred - errors) / 2                                     # errors = false + missed events
+        assert out[f"{event}_f1"] == pytest.approx(2 * tp / (true + pred))
