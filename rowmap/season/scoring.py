@@ -143,7 +143,17 @@ def score(season: Season, dates: list[DateRows], gts: list[GtDate], match_max_m:
             gerr.append(abs(pred - true) * 7)
     out["growth_tracks"] = float(len(gerr))
     out["growth_error_median_mm_per_week"] = float(np.median(gerr)) if gerr else float("nan")
-    # events
+    out.update(_event_scores(season.tracks, obs, dates, gts, pops, to_gt, edge_margin_m))
+    return out
+
+
+def _event_scores(tr: pd.DataFrame, obs: pd.DataFrame, dates: list[DateRows], gts: list[GtDate],
+                  pops: list[pd.DataFrame], to_gt: list[dict[int, int]], edge_margin_m: float) -> dict[str, float]:
+    """Event counts, F1 and the errors put down to the rows or the tracker (the module docstring); `obs` the
+    tracks' observations with their date index `k` and true fruit `true_id` (-1: none), `to_gt` per date the
+    counted fruit_id -> true fruit_id, `pops` per date the true population."""
+    n = len(dates)
+    out: dict[str, float] = {}
     counts = {"harvested": [0, 0, 0], "set": [0, 0, 0]}
     blame = {f"{e}_errors_{w}": 0 for e in ("harvested", "set") for w in ("row", "tracker")}
     for k in range(n - 1):
