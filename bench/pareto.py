@@ -17,8 +17,9 @@ settings; and `pareto.png`.
 `--stage` fits every point as the nerf_fit stage does (its model settings and step counts, depth-ICP initial
 poses, renders at its working scale, scored there against the ground truth taken to that size) with every
 validation frame, and its points (STAGE_POINTS) are variants of those settings: fewer steps, a longer
-marching step, earlier termination, other learning rates (grid / decoders) and a smaller table. It writes `pareto_stage.parquet` and `pareto_stage.png`: at 1280x720
-(`--seq synth_bup20 --window 0`) this is the scale bench the step budget is chosen on.
+marching step, earlier termination, other learning rates (grid / decoders) and a smaller table. It writes
+`pareto_stage.parquet` and `pareto_stage.png`: at 1280x720 (`--seq synth_bup20 --window 0`) this is the scale
+bench the step budget is chosen on.
 
 `--fronts LABEL=PARQUET ...` fits nothing: it puts the points of earlier runs (the same window, e.g. the old and
 the new code) in one figure, each run with its front of whole minutes per window (fits plus validation renders)
