@@ -8,9 +8,11 @@ date and seen again is neither harvested nor set:
 
 - `set`: the first observation of a track, not on the first date, of a fruit no wider than
   set_max_diameter_m, lying inside the stretch of row the previous date recorded (so it would have been
-  seen had it been there);
+  seen had it been there), unless the track is lost after that one observation;
 - `harvested`: a row on the date after a track's last observation when the fruit lies inside that date's
-  stretch (diameter, class and fruit_id null: the fruit is gone);
+  stretch (diameter, class and fruit_id null: the fruit is gone), unless the track is lost: it ended before
+  its fruit was ever seen as ripe as PICKED_FROM (mixed), and growers pick ripe fruits, so a green track that
+  ends was a false fruit or a fruit the later dates miss;
 - `present`: every other observation (the first date's fruits, fruits that entered the view, fruits seen again).
 
 The recorded stretch of a date is the x range of its cameras in the season frame, less edge_margin_m at
@@ -30,6 +32,9 @@ from rowmap.season import association, registration
 RIPENESS_RANK = {"fruit_green": 0, "fruit_mixed": 1, "fruit_red": 2}
 """Ordinal ripeness of the fruit classes (pipeline/classes.py names); other names rank with green."""
 RED = "fruit_red"
+PICKED_FROM = "fruit_mixed"
+"""the least ripe class a fruit is picked at: a track that ends before it reached this class is lost (a false
+fruit, or one the later dates miss), not harvested; a green fruit takes more than a week to ripen."""
 LEFTOVER_SHRINK = 2.0
 """multiple of size_tolerance_m a not-yet-red track left over after the assignment may shrink by to take a fruit
 left over at its place (twice the tolerance: two diameters' noise, against one fruit gone and another there)."""
@@ -244,11 +249,13 @@ def _tables(dates: list[DateRows], tracks: list[_Track], positions: list[np.ndar
                             x_m=positions[k][j, 0], y_m=positions[k][j, 1], z_m=positions[k][j, 2], event="present"))
         k0, kl = t.obs[0][0], t.obs[-1][0]
         first = obs[0]
+        gone = kl < n - 1 and _inside(obs[-1]["x_m"], stretches[kl + 1])   # not seen where the next date looked
+        lost = gone and t.rank < RIPENESS_RANK[PICKED_FROM]
         if (k0 > 0 and _inside(first["x_m"], stretches[k0 - 1]) and np.isfinite(first["diameter_m"])
-                and first["diameter_m"] <= cfg.set_max_diameter_m):
+                and first["diameter_m"] <= cfg.set_max_diameter_m and not (lost and len(obs) == 1)):
             first["event"] = "set"
         harvested = None
-        if kl < n - 1 and _inside(obs[-1]["x_m"], stretches[kl + 1]):
+        if gone and not lost:
             harvested = dates[kl + 1]
             obs.append(dict(obs[-1], seq=harvested.seq, date=harvested.date, day=harvested.day, fruit_id=None,
                             diameter_m=None, class_name=None, event="harvested"))

@@ -120,7 +120,7 @@ def test_a_fruit_missed_once_continues_its_track_within_max_missed_dates():
     rng = np.random.default_rng(6)
     w = world_fruits(rng, 12)
     w = w[(w.x > 0.1) & (w.x < 1.9)].reset_index(drop=True)
-    w["c"] = "fruit_green"
+    w["c"] = "fruit_mixed"                                  # ripe enough to be picked: a track that ends is harvested
     dates = [as_date(s, 7.0 * i, w if i != 1 else w.drop(index=[2]), np.eye(4), rng) for i, s in enumerate("abc")]
     keep = track_season(dates, Config(max_missed_dates=1)).tracks
     drop = track_season(dates, Config(max_missed_dates=0)).tracks
@@ -196,7 +196,8 @@ def test_a_young_fruit_measured_smaller_than_tolerated_keeps_its_track_unless_an
     assert (t.track_id == track).sum() == 2 and (t.event != "harvested").all()
     d1.fruits.loc[d1.fruits.gid == w.gid[3], "diameter_m"] -= 0.015          # 30 mm: another fruit
     t = track_season([d0, d1], Config(size_tolerance_m=0.01)).tracks
-    assert (t.event == "harvested").sum() == 1
+    assert t.track_id.nunique() == len(w) + 2                                 # the new fruit, and this one anew
+    assert (t.event != "harvested").all()     # the green track left behind is lost: green fruits are not picked
 
 
 def test_correction_follows_and_continues_the_drift_of_the_pairs():
@@ -236,7 +237,7 @@ def test_event_errors_are_put_down_to_the_rows_or_to_the_tracker():
         where = {i: np.array([xs.get(i, 1.63), 0.6 if i != 9 else 0.8, 0.8]) for i in counted[day]}
         xyz = np.array([where[i] for i in counted[day]])
         d = [0.03 if set_day.get(i, day) > 0 else 0.02 if (i, day) == (8, 14) else 0.05 for i in counted[day]]
-        names = ["fruit_red" if i in (3, 7) else "fruit_green" for i in counted[day]]
+        names = ["fruit_red" if i in (3, 7) else "fruit_mixed" if i == 8 else "fruit_green" for i in counted[day]]
         fruits = pd.DataFrame({"fruit_id": counted[day], "x_m": xyz[:, 0], "y_m": xyz[:, 1], "z_m": xyz[:, 2],
                                "diameter_m": d, "class_name": names})
         dates.append(DateRows(f"d{day}", dt.date(2020, 9, 1) + dt.timedelta(days=day), float(day), fruits, cams))
@@ -257,3 +258,25 @@ def test_event_errors_are_put_down_to_the_rows_or_to_the_tracker():
         errors = out[f"{event}_errors_row"] + out[f"{event}_errors_tracker"]
         tp = (true + pred - errors) / 2                                     # errors = false + missed events
         assert out[f"{event}_f1"] == pytest.approx(2 * tp / (true + pred))
+
+
+def test_a_green_track_that_ends_is_lost_neither_harvested_nor_set_after_one_sighting():
+    """Growers pick ripe fruits: a track that ends before it was seen mixed or red is lost (a false fruit or one
+    the later dates miss). A red fruit that goes is harvested; a new fruit seen on two dates set."""
+    rng = np.random.default_rng(8)
+    w = world_fruits(rng, 14)
+    w = w[(w.x > 0.1) & (w.x < 1.9)].reset_index(drop=True)
+    w["c"] = "fruit_green"
+    w.loc[0, "c"] = "fruit_red"
+    young = pd.DataFrame({"gid": [100, 101], "x": [0.95, 1.35], "y": [0.55, 0.55], "z": [0.62, 0.93],
+                          "d": [0.035, 0.035], "c": ["fruit_green", "fruit_green"]})
+    b = pd.concat([w, young], ignore_index=True)                 # 100 a false fruit (b only), 101 a new one
+    c = pd.concat([w.drop(index=[0, 1]), young[young.gid == 101]], ignore_index=True)   # red 0 picked, green 1 lost
+    dates = [as_date(s, 7.0 * i, f, np.eye(4), rng) for i, (s, f) in enumerate(zip("abc", [w, b, c]))]
+    t = track_season(dates, Config()).tracks
+    gid = {(d.seq, int(f)): g for d in dates for f, g in zip(d.fruits.fruit_id, d.fruits.gid)}
+    first = t[t.fruit_id.notna()].groupby("track_id").first()
+    events = {gid[(r.seq, int(r.fruit_id))]: set(t[t.track_id == tid].event) for tid, r in first.iterrows()}
+    assert events[w.gid[0]] == {"present", "harvested"}
+    assert events[w.gid[1]] == {"present"}
+    assert events[100] == {"present"} and events[101] == {"set", "present"}
