@@ -240,6 +240,7 @@ def _tables(dates: list[DateRows], tracks: list[_Track], positions: list[np.ndar
             regs: list[registration.Registration], how: list[str], cfg: Config) -> Season:
     rows, summary = [], []
     n = len(dates)
+    lost_on = np.zeros(n, np.int64)
     for tid, t in enumerate(sorted(tracks, key=lambda t: (t.obs[0][0], positions[t.obs[0][0]][t.obs[0][1], 0])), 1):
         obs = []
         for k, j in t.obs:
@@ -251,6 +252,8 @@ def _tables(dates: list[DateRows], tracks: list[_Track], positions: list[np.ndar
         first = obs[0]
         gone = kl < n - 1 and _inside(obs[-1]["x_m"], stretches[kl + 1])   # not seen where the next date looked
         lost = gone and t.rank < RIPENESS_RANK[PICKED_FROM]
+        if lost:
+            lost_on[kl + 1] += 1
         if (k0 > 0 and _inside(first["x_m"], stretches[k0 - 1]) and np.isfinite(first["diameter_m"])
                 and first["diameter_m"] <= cfg.set_max_diameter_m and not (lost and len(obs) == 1)):
             first["event"] = "set"
@@ -288,7 +291,7 @@ def _tables(dates: list[DateRows], tracks: list[_Track], positions: list[np.ndar
         per_date.append(dict(
             seq=row.seq, date=row.date, day=row.day, fruits=len(row.fruits),
             continued=int((on.fruit_id.notna() & (on.track_id.map(first_day) < row.day)).sum()),
-            set=int((on.event == "set").sum()), harvested=int((on.event == "harvested").sum()),
+            set=int((on.event == "set").sum()), harvested=int((on.event == "harvested").sum()), lost=int(lost_on[k]),
             registered_on=how[k], registration_inliers=reg.inliers, registration_rms_m=reg.rms_m,
             tx_m=float(t.transform[0, 3]), ty_m=float(t.transform[1, 3]), tz_m=float(t.transform[2, 3]),
             yaw_deg=float(np.degrees(np.arctan2(t.transform[1, 0], t.transform[0, 0]))),

@@ -273,7 +273,9 @@ def test_a_green_track_that_ends_is_lost_neither_harvested_nor_set_after_one_sig
     b = pd.concat([w, young], ignore_index=True)                 # 100 a false fruit (b only), 101 a new one
     c = pd.concat([w.drop(index=[0, 1]), young[young.gid == 101]], ignore_index=True)   # red 0 picked, green 1 lost
     dates = [as_date(s, 7.0 * i, f, np.eye(4), rng) for i, (s, f) in enumerate(zip("abc", [w, b, c]))]
-    t = track_season(dates, Config()).tracks
+    season = track_season(dates, Config())
+    t = season.tracks
+    assert list(season.dates.lost) == [0, 0, 2] and list(season.dates.harvested) == [0, 0, 1]
     gid = {(d.seq, int(f)): g for d in dates for f, g in zip(d.fruits.fruit_id, d.fruits.gid)}
     first = t[t.fruit_id.notna()].groupby("track_id").first()
     events = {gid[(r.seq, int(r.fruit_id))]: set(t[t.track_id == tid].event) for tid, r in first.iterrows()}
