@@ -14,6 +14,7 @@ it as `structure.parquet`), and a season registers its dates on it (rowmap/seaso
 """
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -100,7 +101,7 @@ class VoxelCloud:
 
 
 def structure_of_frames(frames: pd.DataFrame, data_root: Path, max_depth_m: float, c2w: np.ndarray,
-                        place) -> pd.DataFrame:
+                        place: Callable[[np.ndarray], np.ndarray]) -> pd.DataFrame:
     """The structure table of a row from its frames table and given poses, for a row without fused frames
     (fruit_count uses the fused ones): each frame's recorded depth and its detector's semantic labels,
     un-projected with `c2w` [N, 4, 4] (one per frame), then through `place` (a function of points [M, 3]).

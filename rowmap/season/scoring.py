@@ -156,7 +156,10 @@ def _event_scores(tr: pd.DataFrame, obs: pd.DataFrame, dates: list[DateRows], gt
     out: dict[str, float] = {}
     counts = {"harvested": [0, 0, 0], "set": [0, 0, 0]}
     blame = {f"{e}_errors_{w}": 0 for e in ("harvested", "set") for w in ("row", "tracker")}
+    counted_so_far, seen_so_far = set(), set()    # true fruits counted / in view on dates 0..k
     for k in range(n - 1):
+        counted_so_far |= set(to_gt[k].values())
+        seen_so_far |= set(pops[k].index)
         a, b = gts[k], gts[k + 1]
         if b.season is None:
             continue
@@ -188,8 +191,7 @@ def _event_scores(tr: pd.DataFrame, obs: pd.DataFrame, dates: list[DateRows], gt
             else:
                 fp_s += 1
                 # no true fruit, or a fruit in view before that no earlier date counted
-                before = set().union(*(to_gt[j].values() for j in range(k + 1)))
-                row = gid < 0 or (any(gid in pops[j].index for j in range(k + 1)) and gid not in before)
+                row = gid < 0 or (gid in seen_so_far and gid not in counted_so_far)
                 blame["set_errors_row" if row else "set_errors_tracker"] += 1
         missed_h, missed_s = true_h - pred_h, true_s - pred_s
         blame["harvested_errors_row"] += len(missed_h - counted_a)
