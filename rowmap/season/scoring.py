@@ -156,9 +156,10 @@ def _event_scores(tr: pd.DataFrame, obs: pd.DataFrame, dates: list[DateRows], gt
     out: dict[str, float] = {}
     counts = {"harvested": [0, 0, 0], "set": [0, 0, 0]}
     blame = {f"{e}_errors_{w}": 0 for e in ("harvested", "set") for w in ("row", "tracker")}
+    counted = [set(m.values()) for m in to_gt]      # per date, the true fruits its map counted
     counted_so_far, seen_so_far = set(), set()    # true fruits counted / in view on dates 0..k
     for k in range(n - 1):
-        counted_so_far |= set(to_gt[k].values())
+        counted_so_far |= counted[k]
         seen_so_far |= set(pops[k].index)
         a, b = gts[k], gts[k + 1]
         if b.season is None:
@@ -174,7 +175,7 @@ def _event_scores(tr: pd.DataFrame, obs: pd.DataFrame, dates: list[DateRows], gt
         seq_b = dates[k + 1].seq
         pred_h, pred_s = set(), set()
         fp_h = fp_s = 0
-        counted_a, counted_b = set(to_gt[k].values()), set(to_gt[k + 1].values())
+        counted_a, counted_b = counted[k], counted[k + 1]
         for tid in tr[(tr.seq == seq_b) & (tr.event == "harvested")].track_id:
             last = obs[(obs.track_id == tid) & (obs.k == k)]
             gid = int(last.true_id.iloc[0]) if len(last) else -1
