@@ -191,19 +191,25 @@ def frame_codes(lfs: list[LocalFruit]) -> dict[int, set[int]]:
 
 MAX_PAIR_COST = 1.5
 """the largest pair_cost of a match: that of two centres max_match_distance_m apart without a shared frame."""
+MAX_PAIR_REACH = 4.0
+"""multiple of max_match_distance_m: two windows' slots farther apart are never one fruit, whatever their masks."""
 
 
 def pair_cost(a: LocalFruit, b: LocalFruit, overlaps: MaskOverlaps, cfg: Config) -> float:
-    """distance / max_match_distance_m + (1 - mask IoU) of two windows' local fruits (IoU 0.5 without a shared
-    frame); inf over MAX_PAIR_COST or under min_mask_iou: masks that agree on shared frames may lie further apart
-    (two windows' spheres of one fruit differ by up to a radius where each saw another side of it)."""
+    """The cost of two windows' local fruits being one fruit, d = centre distance / max_match_distance_m:
+    (1 - mask IoU) x (1 + d) where both windows rendered frames of them, 0.5 + d where they share no frame; inf
+    over MAX_PAIR_COST, past MAX_PAIR_REACH or under min_mask_iou. On shared frames the masks are the evidence
+    and the distance counts as much as they disagree: a window that saw a fruit only at its image border can
+    place its centre several cm off while painting the same pixels as the other window."""
     dist = np.inf if a.centre is None or b.centre is None else centre_distance(a, b)
-    if dist > MAX_PAIR_COST * cfg.max_match_distance_m:
+    if dist > MAX_PAIR_REACH * cfg.max_match_distance_m:
         return np.inf
     inter, union = overlaps.overlap(a.window_id, frame_codes([a]), b.window_id, frame_codes([b]))
-    iou = inter / union if union else 0.5
-    cost = dist / cfg.max_match_distance_m + (1.0 - iou)
-    return np.inf if (union and iou < cfg.min_mask_iou) or cost > MAX_PAIR_COST else cost
+    d = dist / cfg.max_match_distance_m
+    if not union:
+        return 0.5 + d if 0.5 + d <= MAX_PAIR_COST else np.inf
+    cost = (1.0 - inter / union) * (1.0 + d)
+    return np.inf if inter / union < cfg.min_mask_iou or cost > MAX_PAIR_COST else cost
 
 
 def candidate_pairs(fruits: list[LocalFruit], overlaps: MaskOverlaps, cfg: Config) -> list[tuple[float, int, int]]:
@@ -216,7 +222,7 @@ def candidate_pairs(fruits: list[LocalFruit], overlaps: MaskOverlaps, cfg: Confi
     for wa, wb in combinations(sorted(by_window), 2):
         ia, ib = by_window[wa], by_window[wb]
         ca, cb = np.stack([fruits[i].centre for i in ia]), np.stack([fruits[j].centre for j in ib])
-        near = np.linalg.norm(ca[:, None] - cb[None], axis=2) <= 4 * cfg.max_match_distance_m   # cheap pre-gate
+        near = np.linalg.norm(ca[:, None] - cb[None], axis=2) <= MAX_PAIR_REACH * cfg.max_match_distance_m
         cost = np.full(near.shape, np.inf)
         for r, c in zip(*np.nonzero(near)):
             cost[r, c] = pair_cost(fruits[ia[r]], fruits[ib[c]], overlaps, cfg)

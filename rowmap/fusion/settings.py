@@ -11,7 +11,7 @@ TERMS = ("render", "detector", "shape", "surface", "order")
 class Config:
     max_match_distance_m: float = 0.04
     """metres, > 0: two windows' slots of one fruit lie at most this far apart (about half a fruit diameter) without
-    a shared frame, up to 1.5 x as far where their masks agree on shared frames (association.pair_cost)."""
+    a shared frame, farther as their masks agree on shared frames (association.pair_cost)."""
     min_mask_iou: float = 0.3
     """[0, 1]: two windows' masks of one fruit must overlap this much on the frames both rendered."""
     group_gap_m: float = 0.03

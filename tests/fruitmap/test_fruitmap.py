@@ -9,6 +9,7 @@ import numpy as np
 import pandas as pd
 import pyarrow.parquet as pq
 import pytest
+from scipy.spatial import cKDTree
 
 from nerf.geometry import pose_txyzq
 from nerf.surfaces import fruit_sphere
@@ -105,17 +106,19 @@ def test_windows_placed_apart_by_their_own_refinement_are_aligned_before_fusing(
     t[:2, :2] = [[np.cos(yaw), -np.sin(yaw)], [np.sin(yaw), np.cos(yaw)]]
     t[:3, 3] = [0.05, 0.04, 0.01]
     truth = pd.read_parquet(perfect_row.processed / "fruits.parquet")
-    counts = {}
+    xyz = ["x_m", "y_m", "z_m"]
+    counts, worst = {}, {}
     for align in (True, False):
         row = make_row(name=f"align_{align}")
         shifted_window_poses(row, 1, t)
         run_stages(row, f"panoptic_fusion.align_windows={str(align).lower()}")
         fruits = pd.read_parquet(row.processed / "fruits.parquet")
         counts[align] = len(fruits)
-        if align:
-            assert len(fruits) == len(truth)
-            np.testing.assert_allclose(fruits[["x_m", "y_m", "z_m"]], truth[["x_m", "y_m", "z_m"]], atol=1e-6)
-    assert counts[False] > counts[True]  # unaligned, the fruits both windows saw are counted twice
+        worst[align] = cKDTree(truth[xyz].to_numpy()).query(fruits[xyz].to_numpy())[0].max()
+    assert counts[True] == len(truth) and worst[True] < 1e-6
+    # unaligned, the two windows' masks still make each fruit they both saw one fruit, but its model mixes the
+    # two windows' frames: it lies cm off
+    assert counts[False] == counts[True] and worst[False] > 0.03
 
 
 def test_sphere_centre_does_not_move_with_the_side_a_fruit_is_seen_from():
@@ -202,7 +205,7 @@ def test_fusion_uses_mask_overlap_on_shared_frames():
     assert association.pair_cost(a, b, association.MaskOverlaps({(0, 4): m_a, (1, 4): m_b}), cfg) == np.inf
 
 
-def test_slots_past_the_gate_match_only_where_their_masks_agree_and_never_past_one_and_a_half_gates():
+def test_slots_on_shared_frames_match_as_far_apart_as_their_masks_agree_and_alone_only_within_the_gate():
     cfg = panoptic_fusion.Config(max_match_distance_m=0.04, min_mask_iou=0.3)
     a = association.LocalFruit(0, 3, 0, [(4, 0)], 50, 2, np.zeros(3))
     m_a, m_b = np.zeros((6, 6), np.int32), np.zeros((6, 6), np.int32)
@@ -213,15 +216,36 @@ def test_slots_past_the_gate_match_only_where_their_masks_agree_and_never_past_o
     def other(slot: int, x: float) -> association.LocalFruit:
         return association.LocalFruit(1, slot, 0, [(4, 0)], 50, 2, np.array([x, 0.0, 0.0]))
 
-    assert association.pair_cost(a, other(8, 0.03), overlaps, cfg) == pytest.approx(0.03 / 0.04 + 1 - 5 / 9)
-    assert association.pair_cost(a, other(8, 0.05), overlaps, cfg) == np.inf     # IoU 5/9: 1.25 + 0.44 > 1.5
+    # IoU 5/9: (1 - IoU) x (1 + distance / 4 cm), at most 1.5
+    assert association.pair_cost(a, other(8, 0.03), overlaps, cfg) == pytest.approx(4 / 9 * (1 + 0.03 / 0.04))
+    assert association.pair_cost(a, other(8, 0.09), overlaps, cfg) == pytest.approx(4 / 9 * (1 + 0.09 / 0.04))
+    assert association.pair_cost(a, other(8, 0.1), overlaps, cfg) == np.inf      # 4/9 x 3.5 > 1.5
+    piece = other(9, 0.0)                                                         # the 4 pixels: IoU 4/9
+    assert association.pair_cost(a, piece, overlaps, cfg) == pytest.approx(5 / 9)
+    strict = panoptic_fusion.Config(max_match_distance_m=0.04, min_mask_iou=0.5)
+    assert association.pair_cost(a, piece, overlaps, strict) == np.inf           # under min_mask_iou
     m_b[:3, :3] = association.code(8, 0)                                          # the same mask again: IoU 1
     overlaps = association.MaskOverlaps({(0, 4): m_a, (1, 4): m_b})
-    assert association.pair_cost(a, other(8, 0.05), overlaps, cfg) == pytest.approx(0.05 / 0.04)
-    assert association.pair_cost(a, other(8, 0.061), overlaps, cfg) == np.inf    # past 1.5 gates
-    alone = association.MaskOverlaps({(0, 4): m_a})                               # no shared frame: IoU 0.5
+    assert association.pair_cost(a, other(8, 0.15), overlaps, cfg) == 0.0
+    assert association.pair_cost(a, other(8, 0.161), overlaps, cfg) == np.inf    # past MAX_PAIR_REACH gates
+    alone = association.MaskOverlaps({(0, 4): m_a})                               # no shared frame: 0.5 + distance
     assert association.pair_cost(a, other(8, 0.04), alone, cfg) == pytest.approx(1.5)
     assert association.pair_cost(a, other(8, 0.041), alone, cfg) == np.inf
+
+
+def test_a_fruit_one_window_placed_cm_off_is_one_fruit_where_both_windows_paint_its_pixels():
+    cfg = panoptic_fusion.Config(max_match_distance_m=0.04)
+    lf = association.LocalFruit
+    a = lf(0, 1, 0, [(2, 0), (4, 0), (6, 0)], 900, 2, np.zeros(3))
+    off = lf(1, 5, 0, [(4, 0), (6, 0)], 200, 2, np.array([0.05, 0.04, 0.0]))   # 6.4 cm off: seen at its border
+    same = masks_of((4, 8), {(0, 4): [(1, slice(2, 6))], (1, 4): [(5, slice(2, 6))],
+                             (0, 6): [(1, slice(1, 5))], (1, 6): [(5, slice(1, 5))]})
+    assert sorted(sorted(g) for g in association.associate([a, off], same, cfg)) == [[0, 1]]
+    apart = masks_of((4, 8), {(0, 4): [(1, slice(0, 3))], (1, 4): [(5, slice(4, 8))],
+                              (0, 6): [(1, slice(0, 3))], (1, 6): [(5, slice(4, 8))]})
+    alone = {(0, 4): same[(0, 4)], (0, 6): same[(0, 6)]}   # no frame of the pair rendered by both windows
+    for masks in (apart, alone):
+        assert sorted(sorted(g) for g in association.associate([a, off], masks, cfg)) == [[0], [1]]
 
 
 def test_runs_by_key_gives_each_labels_pixels_in_image_order():
@@ -306,7 +330,7 @@ def test_fruits_whose_masks_disagree_on_a_shared_frame_never_join_one_id_through
     w3 = lf(3, 8, 0, [(10, 0), (12, 0)], 900, 2, c)      # shares no frame with window 1
     painted = [(2, slice(0, 4)), (3, slice(6, 8))]
     masks = masks_of((4, 8), {(1, 4): painted, (1, 6): painted,
-                              (2, 4): [(7, slice(0, 3))], (2, 6): [(7, slice(0, 3))]})
+                              (2, 4): [(7, slice(0, 2))], (2, 6): [(7, slice(0, 2))]})
     overlaps = association.MaskOverlaps(masks)
     assert association.pair_cost(piece, w3, overlaps, cfg) < association.pair_cost(main, w2, overlaps, cfg)
     groups = sorted(sorted(g) for g in association.associate([main, piece, w2, w3], masks, cfg))
