@@ -206,10 +206,10 @@ def pair_cost(a: LocalFruit, b: LocalFruit, overlaps: MaskOverlaps, cfg: Config)
         return np.inf
     inter, union = overlaps.overlap(a.window_id, frame_codes([a]), b.window_id, frame_codes([b]))
     d = dist / cfg.max_match_distance_m
-    if not union:
-        return 0.5 + d if 0.5 + d <= MAX_PAIR_COST else np.inf
-    cost = (1.0 - inter / union) * (1.0 + d)
-    return np.inf if inter / union < cfg.min_mask_iou or cost > MAX_PAIR_COST else cost
+    if union and inter / union < cfg.min_mask_iou:
+        return np.inf
+    cost = (1.0 - inter / union) * (1.0 + d) if union else 0.5 + d
+    return cost if cost <= MAX_PAIR_COST else np.inf
 
 
 def candidate_pairs(fruits: list[LocalFruit], overlaps: MaskOverlaps, cfg: Config) -> list[tuple[float, int, int]]:
