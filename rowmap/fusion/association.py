@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from collections import defaultdict
 from dataclasses import dataclass
+from functools import cached_property
 from itertools import combinations
 
 import numpy as np
@@ -64,6 +65,14 @@ class LocalFruit:
     fruit_id: int = 0
     drop_reason: str = ""
     median: np.ndarray | None = None
+
+    @cached_property
+    def codes(self) -> dict[int, set[int]]:
+        """frame -> the slot codes of this fruit's pixel groups there."""
+        out: dict[int, set[int]] = defaultdict(set)
+        for f, g in self.frames:
+            out[f].add(int(code(self.slot, g)))
+        return dict(out)
 
 
 def slot_views(sem: np.ndarray, inst: np.ndarray, depth: np.ndarray, sensor: np.ndarray, k: np.ndarray,
@@ -179,13 +188,29 @@ class MaskOverlaps:
                 inter += n * (x in ca and y in cb)
         return inter, union
 
+    def under(self, lf: LocalFruit, owner: dict[tuple[int, int, int], int]) -> tuple[dict[int, int], int]:
+        """({k: pixels of lf's mask that lie on local fruit k's mask}, pixels of lf's mask) over the frames other
+        windows rendered too; `owner`: (window, frame, slot code) -> local fruit index."""
+        on, total = defaultdict(int), 0
+        for (wa, wb), fids in self.shared.items():
+            if lf.window_id not in (wa, wb):
+                continue
+            other = wb if lf.window_id == wa else wa
+            for f in (f for f in fids if f in lf.codes):
+                for own, theirs, n in self.joint(lf.window_id, other, f):
+                    if own in lf.codes[f]:
+                        total += n
+                        if (k := owner.get((other, f, theirs))) is not None:
+                            on[k] += n
+        return on, total
+
 
 def frame_codes(lfs: list[LocalFruit]) -> dict[int, set[int]]:
     """frame -> the slot codes of the local fruits' pixel groups there."""
     out: dict[int, set[int]] = defaultdict(set)
     for lf in lfs:
-        for f, g in lf.frames:
-            out[f].add(int(code(lf.slot, g)))
+        for f, cs in lf.codes.items():
+            out[f] |= cs
     return out
 
 
@@ -204,7 +229,7 @@ def pair_cost(a: LocalFruit, b: LocalFruit, overlaps: MaskOverlaps, cfg: Config)
     dist = np.inf if a.centre is None or b.centre is None else centre_distance(a, b)
     if dist > MAX_PAIR_REACH * cfg.max_match_distance_m:
         return np.inf
-    inter, union = overlaps.overlap(a.window_id, frame_codes([a]), b.window_id, frame_codes([b]))
+    inter, union = overlaps.overlap(a.window_id, a.codes, b.window_id, b.codes)
     d = dist / cfg.max_match_distance_m
     if union and inter / union < cfg.min_mask_iou:
         return np.inf
@@ -241,7 +266,7 @@ def associate(fruits: list[LocalFruit], masks: dict[tuple[int, int], np.ndarray]
     overlaps = MaskOverlaps(masks)
     members = {i: [i] for i in range(len(fruits))}
     root = list(range(len(fruits)))
-    codes = [frame_codes([lf]) for lf in fruits]
+    codes = [lf.codes for lf in fruits]
 
     def compatible(a: list[int], b: list[int]) -> bool:
         if any(fruits[i].window_id == fruits[j].window_id and (codes[i].keys() & codes[j].keys()
@@ -268,17 +293,11 @@ def associate(fruits: list[LocalFruit], masks: dict[tuple[int, int], np.ndarray]
     for i, lf in enumerate(fruits):
         if lf.centre is None or len(members.get(i, ())) != 1:
             continue
-        on, total = defaultdict(int), 0     # group root -> pixels of this fruit's mask on its masks
-        for (wa, wb), fids in overlaps.shared.items():
-            if lf.window_id in (wa, wb):
-                other = wb if lf.window_id == wa else wa
-                for f in fids:
-                    for own, theirs, n in overlaps.joint(lf.window_id, other, f) if f in codes[i] else ():
-                        if own in codes[i][f]:
-                            total += n
-                            k = owner.get((other, f, theirs))
-                            if k is not None and fruits[k].centre is not None:
-                                on[root[k]] += n
+        under, total = overlaps.under(lf, owner)
+        on = defaultdict(int)     # group root -> pixels of this fruit's mask on its masks
+        for k, n in under.items():
+            if fruits[k].centre is not None:
+                on[root[k]] += n
         if on:
             r, n_on = max(on.items(), key=lambda kv: kv[1])
             gap = min(centre_distance(lf, fruits[k]) for k in members[r])
@@ -306,6 +325,6 @@ def slot_table(local: list[LocalFruit]) -> dict[tuple[int, int], dict[int, int]]
     """{(window, frame): {slot code: fruit id}}: how each render's slots map to row fruits."""
     lut: dict[tuple[int, int], dict[int, int]] = defaultdict(dict)
     for lf in local:
-        for f, g in lf.frames:
-            lut[(lf.window_id, f)][int(code(lf.slot, g))] = lf.fruit_id
+        for f, cs in lf.codes.items():
+            lut[(lf.window_id, f)].update(dict.fromkeys(cs, lf.fruit_id))
     return lut
