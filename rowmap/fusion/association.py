@@ -261,8 +261,9 @@ def candidate_pairs(fruits: list[LocalFruit], overlaps: MaskOverlaps, cfg: Confi
 def associate(fruits: list[LocalFruit], masks: dict[tuple[int, int], np.ndarray], cfg: Config) -> list[list[int]]:
     """Groups of local-fruit indices that are one row fruit: candidate_pairs merged cheapest first where no two
     local fruits of one window share a frame or lie apart, and every two windows' masks of the group overlap by
-    min_mask_iou. A fruit left alone whose mask lies mostly on one group's masks (and within the gate of it)
-    joins it: a second slot its window painted on that fruit."""
+    min_mask_iou. A fruit left alone whose mask lies mostly on one group's masks, its sphere centre within
+    max_match_distance_m of one of theirs, joins it: a second slot its window painted on that fruit (sphere
+    centres only: the join has no mask check between windows, so not the points' medians a pair may use)."""
     overlaps = MaskOverlaps(masks)
     members = {i: [i] for i in range(len(fruits))}
     root = list(range(len(fruits)))
@@ -300,7 +301,7 @@ def associate(fruits: list[LocalFruit], masks: dict[tuple[int, int], np.ndarray]
                 on[root[k]] += n
         if on:
             r, n_on = max(on.items(), key=lambda kv: kv[1])
-            gap = min(centre_distance(lf, fruits[k]) for k in members[r])
+            gap = min(float(np.linalg.norm(lf.centre - fruits[k].centre)) for k in members[r])
             if n_on >= total / 2 and gap <= cfg.max_match_distance_m:
                 join(r, i)
     return [[i for i in g if fruits[i].centre is not None] for g in members.values()

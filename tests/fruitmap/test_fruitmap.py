@@ -355,6 +355,13 @@ def test_a_piece_a_window_painted_beside_a_fruits_slot_joins_that_fruit_where_th
     masks = masks_of((4, 8), {(1, 4): [(2, slice(0, 4)), (3, slice(4, 6))], (2, 4): [(7, slice(0, 7))]})
     groups = sorted(sorted(g) for g in association.associate([main, far, other], masks, cfg))
     assert groups == [[0, 2], [1]]
+    # the join's gate is on the sphere centres: a piece whose points' median lies by the fruit's but whose
+    # sphere sits 6 cm off stays apart, though a pair of windows' slots may match on their medians
+    main.median, other.median = np.zeros(3), np.array([0.005, 0.0, 0.0])
+    far.median = np.array([0.01, 0.0, 0.0])
+    assert association.centre_distance(far, other) == pytest.approx(0.005)
+    groups = sorted(sorted(g) for g in association.associate([main, far, other], masks, cfg))
+    assert groups == [[0, 2], [1]]
 
 
 def test_a_sphere_of_the_fruits_size_puts_the_centre_behind_a_shallow_cap_seen_from_either_side():
