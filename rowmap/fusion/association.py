@@ -267,10 +267,9 @@ def associate(fruits: list[LocalFruit], masks: dict[tuple[int, int], np.ndarray]
     overlaps = MaskOverlaps(masks)
     members = {i: [i] for i in range(len(fruits))}
     root = list(range(len(fruits)))
-    codes = [lf.codes for lf in fruits]
 
     def compatible(a: list[int], b: list[int]) -> bool:
-        if any(fruits[i].window_id == fruits[j].window_id and (codes[i].keys() & codes[j].keys()
+        if any(fruits[i].window_id == fruits[j].window_id and (fruits[i].codes.keys() & fruits[j].codes.keys()
                or centre_distance(fruits[i], fruits[j]) > cfg.max_match_distance_m) for i in a for j in b):
             return False
         by_w: dict[int, list[LocalFruit]] = defaultdict(list)
@@ -290,7 +289,7 @@ def associate(fruits: list[LocalFruit], masks: dict[tuple[int, int], np.ndarray]
     for _, i, j in sorted(candidate_pairs(fruits, overlaps, cfg)):
         if root[i] != root[j] and compatible(members[root[i]], members[root[j]]):
             join(root[i], root[j])
-    owner = {(lf.window_id, f, c): k for k, lf in enumerate(fruits) for f, cs in codes[k].items() for c in cs}
+    owner = {(lf.window_id, f, c): k for k, lf in enumerate(fruits) for f, cs in lf.codes.items() for c in cs}
     for i, lf in enumerate(fruits):
         if lf.centre is None or len(members.get(i, ())) != 1:
             continue
