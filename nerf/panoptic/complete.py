@@ -22,8 +22,12 @@ def instance_spheres(frames: Iterable[tuple[np.ndarray, np.ndarray]], intrinsics
     pts: dict[int, list[np.ndarray]] = {}
     rng = np.random.default_rng(0)
     for (inst, depth), k, pose in zip(frames, intrinsics, c2w):
-        for sl_id in np.unique(inst[inst > 0]):
-            v, u = np.nonzero((inst == sl_id) & (depth > 0))
+        vs, us = np.nonzero((inst > 0) & (depth > 0))
+        order = np.argsort(inst[vs, us], kind="stable")     # by instance, each in row-major pixel order
+        vs, us = vs[order], us[order]
+        slots, starts = np.unique(inst[vs, us], return_index=True)
+        for sl_id, s0, s1 in zip(slots, starts, np.r_[starts[1:], len(vs)]):
+            v, u = vs[s0:s1], us[s0:s1]
             if len(v) > max_per_frame:
                 pick = rng.choice(len(v), max_per_frame, replace=False)
                 v, u = v[pick], u[pick]
@@ -62,31 +66,45 @@ def complete_instances(frames: list[dict], intrinsics: np.ndarray, c2w: np.ndarr
     ids = np.array(list(spheres))
     centres = np.stack([spheres[i][0] for i in ids])                    # [S, 3]
     radii = np.array([spheres[i][1] for i in ids])                      # [S]
-    reach = radii + cfg.complete_margin_m     # nothing outside this ball around a centre is claimed
     added = 0
     for f, k, pose in zip(frames, intrinsics, c2w):
         depth = metres(f)
-        v, u = np.nonzero((f["instance"] == 0) & (depth > 0) & near_spheres(depth.shape, k, pose, centres, reach))
+        who = claims(depth, f["instance"] == 0, k, pose, centres, radii, cfg)
+        vv, uu = np.nonzero(who >= 0)
+        if not len(vv):
+            continue
+        f["instance"][vv, uu] = ids[who[vv, uu]]
+        f["semantic"][vv, uu] = [klass[int(i)] for i in ids[who[vv, uu]]]
+        added += len(vv)
+    return added
+
+
+def claims(depth: np.ndarray, free: np.ndarray, k: np.ndarray, c2w: np.ndarray, centres: np.ndarray,
+           radii: np.ndarray, cfg: PanopticConfig) -> np.ndarray:
+    """[H, W] the index of the sphere (centres [S, 3], radii [S]) each `free` pixel with depth joins, -1 none:
+    its point lies within radius + complete_margin_m of the centre, or (complete_core > 0) its ray passes
+    through the sphere's core with the depth not in front of it; of several, the smallest distance / radius
+    (the first sphere on a tie). Each sphere tests only the pixels of its image box (sphere_boxes), so a frame
+    costs the spheres' boxes, not pixels x spheres."""
+    h, w = depth.shape
+    best, who = np.full((h, w), np.inf), np.full((h, w), -1)
+    free = free & (depth > 0)
+    for j, box in enumerate(sphere_boxes((h, w), k, c2w, centres, radii + cfg.complete_margin_m)):
+        v0, v1, u0, u1 = (0, h, 0, w) if box is None else box
+        v, u = np.nonzero(free[v0:v1, u0:u1])
+        v, u = v + v0, u + u0
         if not len(v):
             continue
-        p = unproject(depth, k, pose, v, u)                             # [P, 3]
-        rel = np.linalg.norm(p[:, None] - centres[None], axis=2)        # [P, S]
-        inside = rel <= radii + cfg.complete_margin_m
-        score = np.where(inside, rel / radii, np.inf)
+        rel = np.linalg.norm(unproject(depth, k, c2w, v, u) - centres[j], axis=1)
+        score = np.where(rel <= radii[j] + cfg.complete_margin_m, rel / radii[j], np.inf)
         if cfg.complete_core > 0:
-            through, closest = rays_through_core(depth, k, pose, v, u, centres, radii * cfg.complete_core,
-                                                 cfg.complete_margin_m)
-            inside |= through
-            score = np.minimum(score, np.where(through, closest / radii, np.inf))
-        hit = inside.any(1)
-        if not hit.any():
-            continue
-        best = score.argmin(1)
-        vv, uu, who = v[hit], u[hit], ids[best[hit]]
-        f["instance"][vv, uu] = who
-        f["semantic"][vv, uu] = [klass[int(i)] for i in who]
-        added += int(hit.sum())
-    return added
+            through, closest = rays_through_core(depth, k, c2w, v, u, centres[j:j + 1],
+                                                 radii[j:j + 1] * cfg.complete_core, cfg.complete_margin_m)
+            score = np.minimum(score, np.where(through[:, 0], closest[:, 0] / radii[j], np.inf))
+        better = score < best[v, u]
+        best[v[better], u[better]] = score[better]
+        who[v[better], u[better]] = j
+    return who
 
 
 def sphere_boxes(hw: tuple[int, int], k: np.ndarray, c2w: np.ndarray, centres: np.ndarray,
@@ -110,29 +128,13 @@ def sphere_boxes(hw: tuple[int, int], k: np.ndarray, c2w: np.ndarray, centres: n
     return out
 
 
-def near_spheres(hw: tuple[int, int], k: np.ndarray, c2w: np.ndarray, centres: np.ndarray,
-                 radii: np.ndarray) -> np.ndarray:
-    """[H, W] bool: the pixels whose ray can meet one of the balls (centres [S, 3], radii [S]) in front of the
-    camera: the union of their sphere_boxes (the whole image for a ball that reaches behind the camera). A
-    point of a ball in front of the camera projects inside its box, so the pixels outside every box can be
-    skipped without changing any result."""
-    mask = np.zeros(hw, bool)
-    for box in sphere_boxes(hw, k, c2w, centres, radii):
-        if box is None:
-            return np.ones(hw, bool)
-        v0, v1, u0, u1 = box
-        if u0 < u1 and v0 < v1:
-            mask[v0:v1, u0:u1] = True
-    return mask
-
-
 def rays_through_core(depth: np.ndarray, k: np.ndarray, c2w: np.ndarray, v: np.ndarray, u: np.ndarray,
                       centres: np.ndarray, core_radii: np.ndarray, margin_m: float) -> tuple[np.ndarray, np.ndarray]:
     """For pixels (v, u) of a frame with rendered z-depth `depth`, intrinsics k = (fx, fy, cx, cy) and pose
     c2w, and spheres (centres [S, 3], core_radii [S]): ([P, S] bool: the pixel's ray passes within the
     sphere in front of the camera and its rendered depth is not in front of the ray's entry into it by more
     than margin_m, [P, S] the ray's closest distance to each centre)."""
-    d = unproject(np.ones_like(depth), k, c2w, v, u) - c2w[:3, 3]      # world rays with camera z = 1
+    d = unproject(np.broadcast_to(1.0, depth.shape), k, c2w, v, u) - c2w[:3, 3]   # world rays with camera z = 1
     norm = np.linalg.norm(d, axis=1)                                    # ray length per unit of z-depth
     oc = centres - c2w[:3, 3]                                           # [S, 3]
     along = (d / norm[:, None]) @ oc.T                                  # [P, S] ray length to the closest point

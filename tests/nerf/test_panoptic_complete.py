@@ -4,7 +4,10 @@ from dataclasses import replace
 import numpy as np
 
 from nerf.config import PanopticConfig
-from nerf.panoptic.complete import complete_instances, near_spheres, rays_through_core
+import pytest
+
+from nerf.panoptic.complete import claims, complete_instances, rays_through_core, sphere_boxes
+from nerf.surfaces import unproject
 
 
 def _sphere_view(centre: np.ndarray, radius: float, cam_x: float, h: int = 40, w: int = 60
@@ -89,7 +92,7 @@ def test_completion_by_ray_takes_a_rim_whose_depth_fell_behind_but_not_the_wall_
     assert (last["instance"][truth == 0] == 0).all()                # the wall around the fruit stays stuff
 
 
-def test_near_spheres_keeps_every_pixel_whose_ray_meets_a_ball_and_drops_far_pixels():
+def test_sphere_boxes_hold_every_pixel_whose_ray_meets_their_ball():
     rng = np.random.default_rng(3)
     h, w = 60, 80
     k = np.array([60.0, 55.0, 41.0, 28.0])
@@ -99,15 +102,54 @@ def test_near_spheres_keeps_every_pixel_whose_ray_meets_a_ball_and_drops_far_pix
     c2w[:3, 3] = [0.1, -0.05, 0.2]
     centres = c2w[:3, 3] + rng.uniform([-0.4, -0.3, 0.3], [0.4, 0.3, 1.0], (5, 3)) @ c2w[:3, :3].T
     radii = rng.uniform(0.02, 0.06, 5)
-    mask = near_spheres((h, w), k, c2w, centres, radii)
     v, u = np.mgrid[0:h, 0:w]
     d = np.stack([(u + 0.5 - k[2]) / k[0], (v + 0.5 - k[3]) / k[1], np.ones((h, w))], -1) @ c2w[:3, :3].T
     d /= np.linalg.norm(d, axis=-1, keepdims=True)
     oc = centres - c2w[:3, 3]                                       # [S, 3]
     along = d @ oc.T                                                # [H, W, S]
-    dist2 = (oc ** 2).sum(1) - along ** 2
-    meets = ((dist2 <= radii ** 2) & (along > 0)).any(-1)
-    assert meets.any() and (mask[meets]).all()                      # conservative: no meeting pixel is lost
-    assert mask.mean() < 0.6                                        # and most of the image is skipped
-    behind = np.vstack([centres, c2w[:3, 3] + 0.01])                # a ball around the camera: every pixel
-    assert near_spheres((h, w), k, c2w, behind, np.append(radii, 0.05)).all()
+    meets = ((oc ** 2).sum(1) - along ** 2 <= radii ** 2) & (along > 0)
+    boxes = sphere_boxes((h, w), k, c2w, centres, radii)
+    for j, (v0, v1, u0, u1) in enumerate(boxes):
+        inside = np.zeros((h, w), bool)
+        inside[v0:v1, u0:u1] = True
+        assert meets[..., j].any() and inside[meets[..., j]].all()  # conservative: no meeting pixel is lost
+        assert inside.mean() < 0.3                                  # and most of the image is skipped
+    behind = sphere_boxes((h, w), k, c2w, c2w[:3, 3][None] + 0.01, np.array([0.05]))
+    assert behind == [None]                                         # a ball around the camera: any pixel
+
+
+def _claims_of_every_pair(depth, free, k, c2w, centres, radii, cfg):
+    """claims as every pixel tested against every sphere (the formulation claims must equal)."""
+    v, u = np.nonzero(free & (depth > 0))
+    rel = np.linalg.norm(unproject(depth, k, c2w, v, u)[:, None] - centres[None], axis=2)
+    inside = rel <= radii + cfg.complete_margin_m
+    score = np.where(inside, rel / radii, np.inf)
+    if cfg.complete_core > 0:
+        through, closest = rays_through_core(depth, k, c2w, v, u, centres, radii * cfg.complete_core,
+                                             cfg.complete_margin_m)
+        inside |= through
+        score = np.minimum(score, np.where(through, closest / radii, np.inf))
+    out = np.full(depth.shape, -1)
+    hit = inside.any(1)
+    out[v[hit], u[hit]] = score.argmin(1)[hit]
+    return out
+
+
+@pytest.mark.parametrize("core", [0.0, 0.7])
+def test_claims_test_each_sphere_in_its_box_and_agree_with_every_pixel_against_every_sphere(core):
+    rng = np.random.default_rng(5)
+    h, w = 48, 64
+    k = np.array([50.0, 50.0, 32.0, 24.0])
+    c2w = np.eye(4)
+    c2w[:3, 3] = [0.02, -0.01, 0.0]
+    centres = np.c_[rng.uniform(-0.15, 0.15, 7), rng.uniform(-0.1, 0.1, 7), rng.uniform(0.45, 0.6, 7)]
+    radii = rng.uniform(0.03, 0.06, 7)
+    centres[-1], radii[-1] = [0.03, 0.0, 0.02], 0.04               # a ball reaching behind the camera
+    depth = 0.52 + rng.normal(0.0, 0.04, (h, w))                    # a noisy surface through the fruits
+    depth[rng.random((h, w)) < 0.05] = 0.0                          # no depth
+    free = rng.random((h, w)) < 0.8                                 # stuff pixels
+    cfg = PanopticConfig(complete_margin_m=0.005, complete_core=core)
+    who = claims(depth, free, k, c2w, centres, radii, cfg)
+    assert (who >= 0).sum() > 100 and len(np.unique(who[who >= 0])) >= 5
+    assert (who[~free | (depth == 0)] == -1).all()
+    np.testing.assert_array_equal(who, _claims_of_every_pair(depth, free, k, c2w, centres, radii, cfg))
