@@ -109,13 +109,13 @@ def figure(data_root: Path, seq: str, path: Path = Path("docs/fusion_frame.png")
     import matplotlib.pyplot as plt
 
     import rowmap.fusion.assignment as assignment
-    from rowmap.fusion import cost
+    from rowmap.fusion import cost, frame_evidence
 
     seen: dict[int, tuple] = {}
 
     def keep(frame, models, owners, cfg):
         out, ev, ids = fused_label(frame, models, owners, cfg)
-        c = np.sort(cost(ev, cfg), axis=1)
+        c = np.sort(cost(frame_evidence(frame, models, owners, cfg), cfg), axis=1)   # every option of every pixel
         seen[frame.frame_id] = (frame, ev, out, c[:, 1] - c[:, 0] if c.shape[1] > 1 else c[:, 0])
         return out, ev, ids
 

@@ -12,10 +12,11 @@ from collections.abc import Callable, Iterable, Iterator
 
 import numpy as np
 
+from nerf.config import BASE_PIXELS
 from nerf.surfaces import robust_centre
 from pipeline.parallel import available_cores, in_order
 from rowmap.fusion.association import MAX_POINTS, min_group_px
-from rowmap.fusion.evidence import Evidence, Frame, frame_evidence
+from rowmap.fusion.evidence import Evidence, Frame, pixel_evidence
 from rowmap.fusion.models import FruitModels, update
 from rowmap.fusion.settings import Config
 from rowmap.geometry import subsample
@@ -27,6 +28,9 @@ SHAPE_INSIDE = 0.2
 UNKNOWN_SHAPE = 0.8
 """shape cost of a fruit without a sphere on a point inside another fruit's sphere (0 elsewhere); with the
 weights, between render and render + SHAPE_INSIDE: that fruit takes the pixel, background does not."""
+TILE_PX = 64
+"""pixels of a 320x180 image (scaled with the image): the side of the square tiles a frame is assigned in."""
+assert WEIGHTS["shape"] * (1 - SHAPE_INSIDE) > WEIGHTS["detector"], "tiles() needs far candidates to lose"
 
 
 def terms(ev: Evidence, cfg: Config) -> dict[str, np.ndarray]:
@@ -57,13 +61,43 @@ def cost(ev: Evidence, cfg: Config) -> np.ndarray:
     return total
 
 
+def tiles(ev: Evidence, shape: tuple[int, int], models: FruitModels, cfg: Config) -> Iterator[tuple]:
+    """(rows, cols) per square tile of the frame: its evidence pixels and the candidates that can win one of
+    them: those without a sphere, those whose halo box (ev.boxes) meets the tile, and those the render or the
+    detector names there. Any other candidate lies outside its halo ball at every pixel of the tile, so its
+    shape term is 1 and it costs more than background (by at least shape x (1 - SHAPE_INSIDE) - detector
+    weight): the tiles give the ids every pixel against every candidate gives. One tile with shape off."""
+    h, w = shape
+    if "shape" in cfg.terms_off or not len(ev.pixels):
+        yield np.arange(len(ev.pixels)), np.arange(len(ev.ids))
+        return
+    side = int(np.ceil(TILE_PX * np.sqrt(max(1.0, h * w / BASE_PIXELS))))
+    per_row = -(-w // side)
+    v, u = np.divmod(ev.pixels, w)
+    tile = (v // side) * per_row + u // side
+    col = {int(f): j for j, f in enumerate(ev.ids)}
+    everywhere = [j for j, f in enumerate(ev.ids) if models.get(int(f)) is None or models[int(f)].centre is None]
+    boxes = [(col[f], b) for f, b in (ev.boxes or {}).items() if f in col]
+    order = np.argsort(tile, kind="stable")
+    keys, starts = np.unique(tile[order], return_index=True)
+    for t, rows in zip(keys, np.split(order, starts[1:])):
+        v0, u0 = (t // per_row) * side, (t % per_row) * side
+        near = [j for j, (b0, b1, c0, c1) in boxes if b0 < v0 + side and v0 < b1 and c0 < u0 + side and u0 < c1]
+        named = np.r_[ev.render[rows], ev.detector[rows]]
+        yield rows, np.unique(np.r_[everywhere, near, named[named > 0] - 1].astype(np.int64))
+
+
 def fused_label(frame: Frame, models: FruitModels, owners: dict, cfg: Config) -> tuple[np.ndarray, Evidence, np.ndarray]:
     """([H, W] fused fruit ids of one frame: 0 = background, -1 = void where the render had a dropped slot and
-    the pixel stays background; the evidence; [P] the id each evidence pixel takes, the argmin of `cost`)."""
-    ev = frame_evidence(frame, models, owners, cfg)
-    c = cost(ev, cfg)
-    c[np.arange(len(c)), ev.render] -= 1e-6   # ties go to the render's option
-    ids = np.r_[0, ev.ids][c.argmin(1)]
+    the pixel stays background; the evidence (pixel_evidence); [P] the id each evidence pixel takes, the argmin
+    of `cost`, found tile by tile (tiles))."""
+    ev = pixel_evidence(frame, models, owners, cfg)
+    ids = np.zeros(len(ev.pixels), np.int64)
+    for rows, cols in tiles(ev, frame.label.shape, models, cfg):
+        part = ev.part(rows, cols, models, frame.c2w[:3, 3], cfg)
+        c = cost(part, cfg)
+        c[np.arange(len(c)), part.render] -= 1e-6   # ties go to the render's option
+        ids[rows] = np.r_[0, part.ids][c.argmin(1)]
     out = frame.label.copy()
     was = out.ravel()[ev.pixels]
     out.ravel()[ev.pixels] = np.where((ids == 0) & (was < 0), -1, ids)

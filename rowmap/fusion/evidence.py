@@ -42,16 +42,37 @@ class Evidence:
     confidence: np.ndarray  # [P] the render's confidence, [0, 1]
     detector: np.ndarray    # [P] option of the detector segment's fruit: -1 no segment, 0 a segment on no fruit
     segment: np.ndarray     # [P] detector segment id (0 = none)
-    rel: np.ndarray         # [P, F] distance to the fruit's sphere centre / its radius (nan: no sphere)
-    beyond: np.ndarray      # [P, F] m beyond the sphere's centre along the pixel's ray (nan: no sphere)
-    gap: np.ndarray         # [P, F] m to the fruit's seen surface (inf: farther than margin_m)
-    radius: np.ndarray      # [F] m (nan: no sphere)
+    rel: np.ndarray | None = None      # [P, F] distance to the fruit's sphere centre / its radius (nan: no sphere)
+    beyond: np.ndarray | None = None   # [P, F] m beyond the sphere's centre along the pixel's ray (nan: no sphere)
+    gap: np.ndarray | None = None      # [P, F] m to the fruit's seen surface (inf: farther than margin_m)
+    radius: np.ndarray | None = None   # [F] m (nan: no sphere)
+    boxes: dict | None = None          # {fruit id: image box (v0, v1, u0, u1) of its halo ball} (FruitModels.in_view)
+
+    def part(self, rows: np.ndarray, cols: np.ndarray, models: FruitModels, eye: np.ndarray, cfg: Config
+             ) -> "Evidence":
+        """The evidence of pixels `rows` (indices) against candidates `cols` (indices into ids, ascending), with
+        the fruit models' distances (FruitModels.query); a render or detector option outside `cols` becomes 0."""
+        ids, points = self.ids[cols], self.points[rows]
+        option = np.zeros(len(self.ids) + 1, np.int64)    # option here of each option of the whole frame
+        option[np.asarray(cols, np.int64) + 1] = np.arange(1, len(cols) + 1)
+        rel, beyond, gap, radii = models.query(ids.tolist(), points, eye, cfg.margin_m)
+        det = self.detector[rows]
+        return Evidence(self.pixels[rows], ids, points, option[self.render[rows]], self.confidence[rows],
+                        np.where(det > 0, option[np.maximum(det, 0)], det), self.segment[rows], rel, beyond, gap,
+                        radii, self.boxes)
 
 
 def frame_evidence(frame: Frame, models: FruitModels, owners: dict[tuple[int, int], int], cfg: Config) -> Evidence:
-    """The evidence of one frame. Candidates: the fruits the render paints and those whose halo is in view. A
-    detector segment's fruit: `owners` ((frame, segment) -> fruit, from a split), else the fruit the render
-    paints on most of it. The render's confidence is BORDER_CONFIDENCE in the border band, else 1."""
+    """The evidence of one frame, every pixel against every candidate (pixel_evidence, then Evidence.part)."""
+    ev = pixel_evidence(frame, models, owners, cfg)
+    return ev.part(np.arange(len(ev.pixels)), np.arange(len(ev.ids)), models, frame.c2w[:3, 3], cfg)
+
+
+def pixel_evidence(frame: Frame, models: FruitModels, owners: dict[tuple[int, int], int], cfg: Config) -> Evidence:
+    """The evidence of one frame but the fruit models' distances. Candidates: the fruits the render paints and
+    those whose halo is in view. A detector segment's fruit: `owners` ((frame, segment) -> fruit, from a split),
+    else the fruit the render paints on most of it. The render's confidence is BORDER_CONFIDENCE in the border
+    band, else 1."""
     h, w = frame.label.shape
     boxes = models.in_view((h, w), frame.k, frame.c2w, cfg)
     ids = np.array(sorted(set(np.unique(frame.label[frame.label > 0]).tolist()) | set(boxes)), np.int64)
@@ -65,7 +86,6 @@ def frame_evidence(frame: Frame, models: FruitModels, owners: dict[tuple[int, in
         keep[bv[near] + v0, bu[near] + u0] = True
     v, u = np.nonzero(keep)
     points = unproject(frame.depth, frame.k, frame.c2w, v, u)
-    rel, beyond, gap, radii = models.query(ids.tolist(), points, frame.c2w[:3, 3], cfg.margin_m)
     on, n_lab = (frame.label > 0) & (seg > 0), int(frame.label.max()) + 1
     owner = np.zeros(int(seg.max()) + 1, np.int64)   # segment -> the fruit painted on most of it (0: none)
     if on.any():
@@ -84,4 +104,4 @@ def frame_evidence(frame: Frame, models: FruitModels, owners: dict[tuple[int, in
     band = int(np.ceil(BORDER_BAND_PX * np.sqrt(scale)))
     border = (v < band) | (v >= h - band) | (u < band) | (u >= w - band)
     confidence = np.where(border, BORDER_CONFIDENCE, 1.0)
-    return Evidence(v * w + u, ids, points, render, confidence, detector, segment, rel, beyond, gap, radii)
+    return Evidence(v * w + u, ids, points, render, confidence, detector, segment, boxes=boxes)

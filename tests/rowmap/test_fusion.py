@@ -220,3 +220,44 @@ def test_a_fruit_seen_only_as_a_shallow_cap_gets_a_sphere_of_the_given_size_behi
     assert m.surface is not None
     # the side comes from the camera: seen from behind the fruit, the sphere would lie in front of the cap
     assert FruitModel(class_id=2, points=cap).refit(cfg, behind=(2 * centre, R)).centre[2] < cap[:, 2].mean()
+
+
+def test_a_frame_assigned_in_tiles_gets_the_ids_of_every_pixel_against_every_candidate(monkeypatch):
+    """fused_label works tile by tile, each tile with the candidates that can win there (tiles): on a crowded
+    frame with a render and a detector that err, and a fruit without a sphere, its ids equal the argmin of the
+    cost of every pixel against every candidate."""
+    import rowmap.fusion.assignment as assignment
+    from rowmap.fusion import cost
+
+    rng = np.random.default_rng(11)
+    centres = [np.array([x, y, z]) for x, y, z in zip(rng.uniform(-0.1, 0.1, 12), rng.uniform(-0.06, 0.06, 12),
+                                                      rng.uniform(0.45, 0.7, 12))]
+    depth, who = scene(centres)
+    label = who + 1
+    for _ in range(25):                                         # blobs painted as another fruit or as stuff
+        v, u = rng.integers(0, HW[0] - 6), rng.integers(0, HW[1] - 6)
+        label[v:v + 6, u:u + 6] = rng.integers(0, 13)
+    segments = np.where(who >= 0, who + 1, 0)
+    segments[segments == 3] = 4                                 # the detector merges fruits 3 and 4
+    far = int(np.argmax([c[2] for c in centres]))
+    u_far = K[0] * centres[far][0] / centres[far][2] + K[2]
+    # a leaf in front, away from the far fruit and the border band, painted and detected as the far fruit
+    blob = (slice(10, 15), slice(10, 15) if u_far > HW[1] / 2 else slice(HW[1] - 15, HW[1] - 10))
+    depth[blob], label[blob], segments[blob] = 0.4, far + 1, 50
+    cfg = Config()
+    models = FruitModels({i + 1: model(c, cfg) for i, c in enumerate(centres)})
+    models[5] = FruitModel(class_id=2, points=np.zeros((0, 3)))   # a fruit without a sphere
+    frame = Frame(frame_id=0, label=label, depth=depth, segments=segments, k=K, c2w=np.eye(4))
+    monkeypatch.setattr(assignment, "TILE_PX", 16)
+    ev = frame_evidence(frame=frame, models=models, owners={}, cfg=cfg)
+    c = cost(ev, cfg)
+    c[np.arange(len(c)), ev.render] -= 1e-6
+    every_pair = np.r_[0, ev.ids][c.argmin(1)]
+    _, ev_tiled, ids = fused_label(frame=frame, models=models, owners={}, cfg=cfg)
+    parts = list(assignment.tiles(ev=ev_tiled, shape=HW, models=models, cfg=cfg))
+    assert len(parts) >= 12 and sum(len(r) * len(k) for r, k in parts) < 0.6 * len(ev.pixels) * len(ev.ids)
+    assert all(list(ev.ids).index(5) in k for _, k in parts)    # a fruit without a sphere is a candidate everywhere
+    in_blob = np.isin(ev.pixels, np.ravel_multi_index(np.mgrid[blob].reshape(2, -1), HW))
+    assert (ids[in_blob] == far + 1).any()                     # the far fruit wins pixels outside its halo box
+    assert (ev_tiled.pixels == ev.pixels).all() and len(np.unique(ids)) > 8
+    np.testing.assert_array_equal(ids, every_pair)
