@@ -30,7 +30,8 @@ UNKNOWN_SHAPE = 0.8
 weights, between render and render + SHAPE_INSIDE: that fruit takes the pixel, background does not."""
 TILE_PX = 64
 """pixels of a 320x180 image (scaled with the image): the side of the square tiles a frame is assigned in."""
-assert WEIGHTS["shape"] * (1 - SHAPE_INSIDE) > WEIGHTS["detector"], "tiles() needs far candidates to lose"
+FAR_LOSES = WEIGHTS["shape"] * (1 - SHAPE_INSIDE) > WEIGHTS["detector"]
+"""whether a candidate outside its halo ball always costs more than background (what `tiles` relies on)."""
 
 
 def terms(ev: Evidence, cfg: Config) -> dict[str, np.ndarray]:
@@ -66,9 +67,10 @@ def tiles(ev: Evidence, shape: tuple[int, int], models: FruitModels, cfg: Config
     them: those without a sphere, those whose halo box (ev.boxes) meets the tile, and those the render or the
     detector names there. Any other candidate lies outside its halo ball at every pixel of the tile, so its
     shape term is 1 and it costs more than background (by at least shape x (1 - SHAPE_INSIDE) - detector
-    weight): the tiles give the ids every pixel against every candidate gives. One tile with shape off."""
+    weight, FAR_LOSES): the tiles give the ids every pixel against every candidate gives. One tile with shape
+    off."""
     h, w = shape
-    if "shape" in cfg.terms_off or not len(ev.pixels):
+    if "shape" in cfg.terms_off or not FAR_LOSES or not len(ev.pixels):
         yield np.arange(len(ev.pixels)), np.arange(len(ev.ids))
         return
     side = int(np.ceil(TILE_PX * np.sqrt(max(1.0, h * w / BASE_PIXELS))))
