@@ -78,7 +78,8 @@ class LocalFruit:
 def slot_views(sem: np.ndarray, inst: np.ndarray, depth: np.ndarray, sensor: np.ndarray, k: np.ndarray,
                c2w: np.ndarray, thing_ids: list[int], cfg: Config) -> tuple[dict, np.ndarray]:
     """The slot views of one rendered frame ({(slot, group): SlotView}) and its slot-code map [H, W] (code of
-    the pixel's slot and group; 0 = no slot). `sensor`: the recorded z-depth in m (0 = none)."""
+    the pixel's slot and group; 0 = no slot; uint16 where the codes fit, as a row holds every frame's map).
+    `sensor`: the recorded z-depth in m (0 = none)."""
     thing = np.isin(sem, thing_ids) & (inst > 0)
     group, out = np.zeros(inst.shape, np.int32), {}
     v, u, ids, starts, ends = runs_by_key(*np.nonzero(thing), inst[thing])
@@ -101,7 +102,8 @@ def slot_views(sem: np.ndarray, inst: np.ndarray, depth: np.ndarray, sensor: np.
             cls = np.bincount(sem[vv[mine], uu[mine]], minlength=max(thing_ids) + 1)
             out[(int(ids[s0]), g)] = SlotView(int(mine.sum()), cls, pts_g[subsample(len(pts_g), MAX_POINTS)],
                                               c2w[:3, 3], offset)
-    return out, np.where(thing, code(inst, group), 0).astype(np.int32)
+    codes = np.where(thing, code(inst.astype(np.int64), group), 0)
+    return out, codes.astype(np.uint16 if codes.max(initial=0) <= np.iinfo(np.uint16).max else np.int32)
 
 
 def split_frames(frame_centres: dict, dist_m: float, min_frames: int = 1) -> list[list]:
