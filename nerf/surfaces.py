@@ -1,5 +1,5 @@
-"""Fruit surfaces from un-projected pixels: robust centres, sphere fits and their plausibility (used by
-the panoptic renders' 3D instance completion, panoptic_fusion and fruit_count)."""
+"""Fruit surfaces from un-projected pixels: the pixels of each label in one sort, robust centres, sphere fits and
+their plausibility (used by the panoptic renders' 3D instance completion, panoptic_fusion and fruit_count)."""
 from __future__ import annotations
 
 import numpy as np
@@ -14,6 +14,19 @@ def unproject(depth_m: np.ndarray, k: np.ndarray, c2w: np.ndarray, v: np.ndarray
     y = (v + 0.5 - k[3]) / k[1] * z
     cam = np.stack([x, y, z], 1)                         # [N, 3]
     return cam @ c2w[:3, :3].T + c2w[:3, 3]
+
+
+def runs_by_key(v: np.ndarray, u: np.ndarray, key: np.ndarray
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Pixels (v, u) [N] sorted by `key` [N] (stable) and the runs of one key in that order: (v, u, key, starts,
+    ends), run j being v[starts[j]:ends[j]] with key key[starts[j]]. The pixels of each label of an image, or of
+    each pair of labels packed into one number, in one sort instead of one full-image mask per label."""
+    order = np.argsort(key, kind="stable")
+    v, u, key = v[order], u[order], key[order]
+    if not len(key):
+        return v, u, key, np.zeros(0, np.int64), np.zeros(0, np.int64)
+    starts = np.flatnonzero(np.r_[True, key[1:] != key[:-1]])
+    return v, u, key, starts, np.r_[starts[1:], len(key)]
 
 
 def robust_centre(points: np.ndarray, k_mad: float = 3.0) -> tuple[np.ndarray, np.ndarray]:

@@ -72,19 +72,6 @@ def subsample(n: int, cap: int) -> np.ndarray:
     return np.arange(n) if n <= cap else np.round(np.linspace(0, n - 1, cap)).astype(np.int64)
 
 
-def runs_by_key(v: np.ndarray, u: np.ndarray, key: np.ndarray
-                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Pixels (v, u) [N] sorted by `key` [N] (stable) and the runs of one key in that order: (v, u, key, starts,
-    ends), run j being v[starts[j]:ends[j]] with key key[starts[j]]. The pixels of each label of an image, or of
-    each pair of labels packed into one number, in one sort instead of one full-image mask per label."""
-    order = np.argsort(key, kind="stable")
-    v, u, key = v[order], u[order], key[order]
-    if not len(key):
-        return v, u, key, np.zeros(0, np.int64), np.zeros(0, np.int64)
-    starts = np.flatnonzero(np.r_[True, key[1:] != key[:-1]])
-    return v, u, key, starts, np.r_[starts[1:], len(key)]
-
-
 def pixel_groups(v: np.ndarray, u: np.ndarray, points: np.ndarray, gap_m: float, min_size: int,
                  max_groups: int) -> np.ndarray:
     """Labels [N] of the groups that pixels (v, u) [N] with 3D points [N, 3] form when image neighbours (left,

@@ -17,9 +17,9 @@ from pipeline.classes import DEFAULT_CLASSES, THING_IDS, class_name
 from pipeline.images import ImageError, read_label
 from pipeline.parallel import available_cores, in_order
 from pipeline.stage import StageContext
-from nerf.surfaces import fit_sphere, plausible_fit, principal_extents, robust_centre, unproject
+from nerf.surfaces import fit_sphere, plausible_fit, principal_extents, robust_centre, runs_by_key, unproject
 from rowmap.colours import id_colours
-from rowmap.geometry import runs_by_key, subsample, with_sensor_depth
+from rowmap.geometry import subsample, with_sensor_depth
 from rowmap.renders import read_depth
 from rowmap.scoring import reference_pixels
 from rowmap.structure import VoxelCloud, frame_points

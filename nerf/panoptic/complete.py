@@ -9,7 +9,7 @@ import numpy as np
 from torch import Tensor
 
 from nerf.config import PanopticConfig
-from nerf.surfaces import fruit_sphere, unproject
+from nerf.surfaces import fruit_sphere, runs_by_key, unproject
 
 
 def instance_spheres(frames: Iterable[tuple[np.ndarray, np.ndarray]], intrinsics: np.ndarray, c2w: np.ndarray,
@@ -23,10 +23,8 @@ def instance_spheres(frames: Iterable[tuple[np.ndarray, np.ndarray]], intrinsics
     rng = np.random.default_rng(0)
     for (inst, depth), k, pose in zip(frames, intrinsics, c2w):
         vs, us = np.nonzero((inst > 0) & (depth > 0))
-        order = np.argsort(inst[vs, us], kind="stable")     # by instance, each in row-major pixel order
-        vs, us = vs[order], us[order]
-        slots, starts = np.unique(inst[vs, us], return_index=True)
-        for sl_id, s0, s1 in zip(slots, starts, np.r_[starts[1:], len(vs)]):
+        vs, us, slots, starts, ends = runs_by_key(vs, us, inst[vs, us])
+        for sl_id, s0, s1 in zip(slots[starts], starts, ends):
             v, u = vs[s0:s1], us[s0:s1]
             if len(v) > max_per_frame:
                 pick = rng.choice(len(v), max_per_frame, replace=False)

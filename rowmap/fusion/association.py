@@ -13,9 +13,9 @@ from scipy.optimize import linear_sum_assignment
 from scipy.sparse.csgraph import connected_components
 
 from nerf.config import BASE_PIXELS
-from nerf.surfaces import fruit_sphere, robust_centre, unproject
+from nerf.surfaces import fruit_sphere, robust_centre, runs_by_key, unproject
 from rowmap.fusion.settings import Config
-from rowmap.geometry import pixel_groups, runs_by_key, sphere_behind, subsample
+from rowmap.geometry import pixel_groups, sphere_behind, subsample
 
 MAX_GROUPS = 256
 """pixel groups one slot can split into in one frame (further groups stay with the largest)."""

@@ -12,13 +12,13 @@ import pytest
 from scipy.spatial import cKDTree
 
 from nerf.geometry import pose_txyzq
-from nerf.surfaces import fruit_sphere
+from nerf.surfaces import fruit_sphere, runs_by_key
 from pipeline import cli
 from pipeline.classes import THING_IDS
 from pipeline.images import ImageError, read_label
 from pipeline.stage import StageContext
 from rowmap.detections import dropped_segments, fruit_segments
-from rowmap.geometry import pixel_groups, runs_by_key, sphere_behind, window_alignments, with_sensor_depth
+from rowmap.geometry import pixel_groups, sphere_behind, window_alignments, with_sensor_depth
 from rowmap.renders import file_name
 from rowmap.scoring import reference_pixels
 from rowmap.fusion import association

@@ -2,10 +2,9 @@
 from dataclasses import replace
 
 import numpy as np
-
-from nerf.config import PanopticConfig
 import pytest
 
+from nerf.config import PanopticConfig
 from nerf.panoptic.complete import claims, complete_instances, rays_through_core, sphere_boxes
 from nerf.surfaces import unproject
 
