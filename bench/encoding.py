@@ -85,14 +85,15 @@ def _synced(fn: Callable[[], None], device: torch.device) -> Callable[[], None]:
     return run
 
 
-def _gather_limits(table: torch.Tensor, n_points: int, ext) -> dict[str, Callable[[], None]]:
-    """The random-access floor on the table's device: 4 random rows read per point and level ('mem_4r'), or read
-    and updated ('mem_4r4u'). The CPU's is the fused module's own loop; a GPU's is torch's gather and scatter-add."""
+def _gather_limits(table: torch.Tensor, offsets: torch.Tensor, n_points: int, ext) -> dict[str, Callable[[], None]]:
+    """The random-access floor on the table's device (rows [R, F], level offsets [L + 1]): 4 random rows read per
+    point and level ('mem_4r'), or read and updated ('mem_4r4u'). The CPU's is the fused module's own loop; a
+    GPU's is torch's gather and scatter-add."""
     if table.device.type == "cpu":
-        return {"mem_4r": lambda: ext.random_access(table, n_points, 4, 0),
-                "mem_4r4u": lambda: ext.random_access(table, n_points, 4, 4)}
-    rows = table.reshape(-1, table.shape[-1])
-    idx = torch.randint(0, rows.shape[0], (4 * table.shape[0] * n_points,), device=table.device,
+        return {"mem_4r": lambda: ext.random_access(table, offsets, n_points, 4, 0),
+                "mem_4r4u": lambda: ext.random_access(table, offsets, n_points, 4, 4)}
+    rows = table
+    idx = torch.randint(0, rows.shape[0], (4 * (len(offsets) - 1) * n_points,), device=table.device,
                         generator=torch.Generator(table.device).manual_seed(2))
     acc = torch.zeros_like(rows)
 
@@ -123,7 +124,8 @@ def run(n_points: int = 2 ** 16, n_levels: int = 16, n_features: int = 2, log2_c
                   finest_scale=1 / 2048, init_std=1e-2)
         encs = {f"{name}_{backend}": cls(**kw, backend=backend).to(dev)
                 for name, cls in ENCODINGS.items() for backend in ("torch", "fused")}
-        limits = _gather_limits(encs["permuto_fused"].table.detach(), n_points, ext)
+        enc = encs["permuto_fused"]
+        limits = _gather_limits(enc.table.detach(), enc.offsets.cpu(), n_points, ext)
         rows = []
         for kind in ("uniform", "rays"):
             x = sample_points(n_points, kind).to(dev)

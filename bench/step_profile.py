@@ -87,15 +87,15 @@ def encoding_limit_s(model, n_points: int, repeats: int = 5) -> float:
     from nerf._ext import load_permuto_ext
 
     ext = load_permuto_ext("cpu")
-    table = getattr(getattr(model.field, "grid", None), "table", None)
-    if ext is None or table is None:
+    grid = getattr(model.field, "grid", None)
+    if ext is None or grid is None:
         return float("nan")
-    table = table.detach().float().contiguous()
-    ext.random_access(table, n_points, 4, 4)
+    table, offsets = grid.table.detach().float().contiguous(), grid.offsets.cpu()
+    ext.random_access(table, offsets, n_points, 4, 4)
     times = []
     for _ in range(repeats):
         t0 = time.perf_counter()
-        ext.random_access(table, n_points, 4, 4)
+        ext.random_access(table, offsets, n_points, 4, 4)
         times.append(time.perf_counter() - t0)
     return statistics.median(times)
 

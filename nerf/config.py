@@ -33,8 +33,9 @@ class NerfConfig:
     log2_capacity: int = 19
     """log2 of the colour grid's hash table rows per level (range 10-24). The window's bounds reach the far
     plane, so the fine levels hold far more lattice vertices than the table has rows; raise it when fine
-    texture blurs (hash collisions), lower it to save memory (table memory = levels x 2^capacity x
-    features x 4 bytes)."""
+    texture blurs (hash collisions), lower it to save memory (table memory at most levels x 2^capacity x
+    features x 4 bytes: a coarse level gets only the rows its vertices near the window's depth use,
+    nerf.encoding.PermutoEncoding.size_levels)."""
     log2_capacity_delta: int = 12
     """log2 of the panoptic delta grid's table rows per level (range 8-24): the panoptic labels vary far more
     slowly than colour, so this grid can be much smaller."""

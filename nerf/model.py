@@ -2,6 +2,7 @@
 cameras, with what renders it (rays in rounds with early termination, whole images) and its checkpoint."""
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass, field
 
 import torch
@@ -154,6 +155,18 @@ def init_occupancy(model: NerfModel, depths: Tensor, c2w: Tensor, k: Tensor, str
         frac = torch.linspace(0, 1, carve_samples, device=depths.device)
         seen_empty = model.grid.cells_along(so, sd, near + (end - near)[:, None] * frac)
     model.grid.init_from_points(torch.cat(surf), free, dilate=model.cfg.occupancy_dilate, seen_empty=seen_empty)
+
+
+@torch.no_grad()
+def depth_points(depths: Tensor, c2w: Tensor, k: Tensor, near_m: float, far_m: float, max_points: int = 1 << 18
+                 ) -> Tensor:
+    """World points [P, 3] of the sensor depth of every frame (depths [N, H, W] in m, with poses and
+    intrinsics) between near_m and far_m, from a pixel stride that keeps P at most about max_points."""
+    n, h, w = depths.shape
+    stride = max(1, math.ceil(math.sqrt(n * h * w / max_points)))
+    pts = [o[ok] + d[ok] * dd[ok, None] for o, d, dd in _depth_rays(depths, c2w, k, stride)
+           for ok in [(dd > near_m) & (dd < far_m)]]
+    return torch.cat(pts) if pts else torch.zeros(0, 3, device=depths.device)
 
 
 def _depth_rays(depths: Tensor, c2w: Tensor, k: Tensor, stride: int):

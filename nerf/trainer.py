@@ -21,7 +21,7 @@ from nerf.config import NerfConfig
 from nerf.fields import build_field, param_count
 from nerf.metrics import psnr, psnr_from_mse
 from nerf.memory import release_freed
-from nerf.model import NerfModel, init_occupancy
+from nerf.model import NerfModel, depth_points, init_occupancy
 from nerf.occupancy import OccupancyGrid
 from nerf.pixel_sampling import GradientCDF, draw_pixels, gradient_cdf
 from nerf.poses import PoseCorrection
@@ -120,6 +120,8 @@ def fit_window(data: WindowData, cfg: NerfConfig, device: str = "cpu",
     grid = OccupancyGrid(scene.lo, scene.hi, cfg.occupancy_res, dev)
     model = NerfModel(cfg, fld, grid, scene, c2w0.clone(), k, (w, h))
     init_occupancy(model, depths, c2w0, k)
+    if getattr(fld, "grid", None) is not None:  # each level's table rows: what its vertices near the surfaces use
+        fld.grid.size_levels(scene.normalise(depth_points(depths, c2w0, k, cfg.near_m, cfg.far_m)))
     release_freed()  # its per-frame rays and points (hundreds of MB at 1280x720) are not held through the steps
     poses = PoseCorrection(n, scene.scale_m).to(dev)
     train_idx = torch.from_numpy(np.flatnonzero(data.is_train)).to(dev)

@@ -3,9 +3,10 @@
 // microbenchmark giving the machine's limit. The maths is in nerf/encoding.py; the pure-torch
 // references there are what tests/nerf/test_encoding.py compares these kernels against.
 //
-// Inputs: x [N, 3] float32, table [L, T, F] float32 (T a power of two), coef [L, 3] (the per-level,
-// per-axis factor: 1 / (sqrt((i+1)(i+2)) sigma_l) for the lattice, 1 / sigma_l for the cubic grid),
-// shifts [L, 3]. Output [N, L * F], level-major within a row.
+// Inputs: x [N, 3] float32, table [R, F] float32 with offsets [L + 1] int64 (level l's rows are
+// offsets[l] .. offsets[l + 1], a power of two of them: levels coarser than the table get fewer rows),
+// coef [L, 3] (the per-level, per-axis factor: 1 / (sqrt((i+1)(i+2)) sigma_l) for the lattice,
+// 1 / sigma_l for the cubic grid), shifts [L, 3]. Output [N, L * F], level-major within a row.
 //
 // What makes it fast (DESIGN section 8, measured on 2-core Zen 1 and Sapphire Rapids VMs):
 // - Work is split by LEVEL (one OpenMP task per level, finest first): a level's table stays in
@@ -251,19 +252,34 @@ int64_t release_cached() {
 
 int64_t cached_bytes() { return (int64_t)pool().cached(); }
 
-void check(const torch::Tensor& x, const torch::Tensor& table, const torch::Tensor& coef,
-           const torch::Tensor& shifts) {
+// The table is flat, [R, F]: level l's rows are offsets[l] .. offsets[l + 1] (a power of two of them, so
+// the hash modulo is a mask). Returns the offsets as a host vector.
+std::vector<int64_t> level_offsets(const torch::Tensor& offsets, int64_t L, const torch::Tensor& table) {
+  TORCH_CHECK(offsets.device().is_cpu() && offsets.scalar_type() == torch::kInt64 && offsets.dim() == 1 &&
+                  offsets.size(0) == L + 1, "offsets must be a CPU int64 [L + 1] tensor");
+  const auto o = offsets.contiguous();
+  std::vector<int64_t> off(o.data_ptr<int64_t>(), o.data_ptr<int64_t>() + L + 1);
+  TORCH_CHECK(off[0] == 0 && off[L] == table.size(0), "offsets must run from 0 to the table's rows");
+  for (int64_t l = 0; l < L; ++l) {
+    const int64_t T = off[l + 1] - off[l];
+    TORCH_CHECK(T > 0 && (T & (T - 1)) == 0 && T * table.size(1) < (int64_t(1) << 32),
+                "each level's rows must be a power of two with rows * F < 2^32, got ", T, " at level ", l);
+  }
+  return off;
+}
+
+std::vector<int64_t> check(const torch::Tensor& x, const torch::Tensor& table, const torch::Tensor& offsets,
+                           const torch::Tensor& coef, const torch::Tensor& shifts) {
   TORCH_CHECK(x.device().is_cpu() && x.scalar_type() == torch::kFloat32 && x.dim() == 2 && x.size(1) == 3,
               "x must be a CPU float32 [N, 3] tensor, got ", x.sizes(), " ", x.scalar_type());
-  TORCH_CHECK(table.device().is_cpu() && table.scalar_type() == torch::kFloat32 && table.dim() == 3,
-              "table must be a CPU float32 [L, T, F] tensor, got ", table.sizes());
-  const int64_t L = table.size(0), T = table.size(1);
-  TORCH_CHECK(T > 0 && (T & (T - 1)) == 0 && T * table.size(2) < (int64_t(1) << 32),
-              "table capacity must be a power of two with T * F < 2^32, got T = ", T);
-  TORCH_CHECK(coef.scalar_type() == torch::kFloat32 && coef.dim() == 2 && coef.size(0) == L && coef.size(1) == 3,
+  TORCH_CHECK(table.device().is_cpu() && table.scalar_type() == torch::kFloat32 && table.dim() == 2,
+              "table must be a CPU float32 [R, F] tensor, got ", table.sizes());
+  TORCH_CHECK(coef.scalar_type() == torch::kFloat32 && coef.dim() == 2 && coef.size(1) == 3,
               "coef must be float32 [L, 3]");
+  const int64_t L = coef.size(0);
   TORCH_CHECK(shifts.scalar_type() == torch::kFloat32 && shifts.dim() == 2 && shifts.size(0) == L &&
                   shifts.size(1) == 3, "shifts must be float32 [L, 3]");
+  return level_offsets(offsets, L, table);
 }
 
 int threads_for(int64_t items) {
@@ -319,11 +335,11 @@ const float* blocked_points(const torch::Tensor& x, float bound) {
 // Features [N, L * F] of x clamped to [-bound, bound]; with need_jac also d features / d x as
 // [L, 3 F, N] (planes per level), which the backward contracts with grad_out instead of reading the
 // table again.
-std::vector<torch::Tensor> forward_impl(Kind kind, torch::Tensor x, torch::Tensor table, torch::Tensor coef,
-                                        torch::Tensor shifts, bool need_jac, double bound) {
-  check(x, table, coef, shifts);
+std::vector<torch::Tensor> forward_impl(Kind kind, torch::Tensor x, torch::Tensor table, torch::Tensor offsets,
+                                        torch::Tensor coef, torch::Tensor shifts, bool need_jac, double bound) {
+  const std::vector<int64_t> off = check(x, table, offsets, coef, shifts);
   x = x.contiguous(); table = table.contiguous(); coef = coef.contiguous(); shifts = shifts.contiguous();
-  const int64_t N = x.size(0), L = table.size(0), T = table.size(1), F = table.size(2);
+  const int64_t N = x.size(0), L = coef.size(0), F = table.size(1);
   float* buf = scratch(0, (size_t)(L * N * F));  // [L, N, F]
   auto jac = need_jac ? pooled_empty({L, 3 * F, N}) : torch::Tensor();
   float* pj = need_jac ? jac.data_ptr<float>() : nullptr;
@@ -331,11 +347,11 @@ std::vector<torch::Tensor> forward_impl(Kind kind, torch::Tensor x, torch::Tenso
   const float* pt = table.data_ptr<float>();
   const float* pc = coef.data_ptr<float>();
   const float* ps = shifts.data_ptr<float>();
-  const uint32_t mask = (uint32_t)(T - 1);
 #pragma omp parallel for num_threads(threads_for(L)) schedule(dynamic, 1)
   for (int64_t i = 0; i < L; ++i) {
     const int64_t l = L - 1 - i;  // finest (slowest) levels first: better balance at the end
-    forward_level(kind, base::LevelArgs{px, N, pt + l * T * F, ps + 3 * l, pc + 3 * l, mask}, F, buf + l * N * F,
+    const uint32_t mask = (uint32_t)(off[l + 1] - off[l] - 1);
+    forward_level(kind, base::LevelArgs{px, N, pt + off[l] * F, ps + 3 * l, pc + 3 * l, mask}, F, buf + l * N * F,
                   pj ? pj + l * 3 * F * N : nullptr);
   }
   auto out = pooled_empty({N, L * F});
@@ -343,15 +359,15 @@ std::vector<torch::Tensor> forward_impl(Kind kind, torch::Tensor x, torch::Tenso
   return {out, jac};
 }
 
-// (grad_table [L, T, F] or undefined, grad_x [N, 3] or undefined). grad_x comes from the forward's
+// (grad_table [R, F] or undefined, grad_x [N, 3] or undefined). grad_x comes from the forward's
 // jac when given, else from reading the table rows again; it is 0 for the coordinates the forward
 // clamped (outside [-bound, bound], or not finite), as through torch's clamp.
 std::vector<torch::Tensor> backward_impl(Kind kind, torch::Tensor grad_out, torch::Tensor x, torch::Tensor table,
-                                         torch::Tensor coef, torch::Tensor shifts, std::optional<torch::Tensor> jac,
-                                         bool need_table, bool need_x, double bound) {
-  check(x, table, coef, shifts);
+                                         torch::Tensor offsets, torch::Tensor coef, torch::Tensor shifts,
+                                         std::optional<torch::Tensor> jac, bool need_table, bool need_x, double bound) {
+  const std::vector<int64_t> off = check(x, table, offsets, coef, shifts);
   x = x.contiguous(); table = table.contiguous(); coef = coef.contiguous(); shifts = shifts.contiguous();
-  const int64_t N = x.size(0), L = table.size(0), T = table.size(1), F = table.size(2);
+  const int64_t N = x.size(0), L = coef.size(0), F = table.size(1);
   TORCH_CHECK(grad_out.scalar_type() == torch::kFloat32 && grad_out.dim() == 2 && grad_out.size(0) == N &&
                   grad_out.size(1) == L * F, "grad_out must be float32 [N, L * F]");
   const bool use_jac = need_x && jac.has_value() && jac->defined();
@@ -367,23 +383,23 @@ std::vector<torch::Tensor> backward_impl(Kind kind, torch::Tensor grad_out, torc
   if (need_x) std::memset(gx_parts, 0, sizeof(float) * nt * 3 * N);
   torch::Tensor jac_c = use_jac ? jac->contiguous() : torch::Tensor();
   const float* pj = use_jac ? jac_c.data_ptr<float>() : nullptr;
-  auto gtable = need_table ? pooled_empty({L, T, F}) : torch::Tensor();
+  auto gtable = need_table ? pooled_empty({table.size(0), F}) : torch::Tensor();
   float* pgt = need_table ? gtable.data_ptr<float>() : nullptr;
   const float* px = (gtable.defined() || !use_jac) ? blocked_points(x, (float)bound) : nullptr;
   const float* pt = table.data_ptr<float>();
   const float* pc = coef.data_ptr<float>();
   const float* ps = shifts.data_ptr<float>();
-  const uint32_t mask = (uint32_t)(T - 1);
 #pragma omp parallel num_threads(nt)
   {
     float* gxp = gx_parts ? gx_parts + (int64_t)omp_get_thread_num() * 3 * N : nullptr;
 #pragma omp for schedule(dynamic, 1)
     for (int64_t i = 0; i < L; ++i) {
-      const int64_t l = L - 1 - i;
-      float* gl = pgt ? pgt + l * T * F : nullptr;
+      const int64_t l = L - 1 - i, T = off[l + 1] - off[l];
+      const uint32_t mask = (uint32_t)(T - 1);
+      float* gl = pgt ? pgt + off[l] * F : nullptr;
       if (gl) std::memset(gl, 0, sizeof(float) * T * F);  // zeroed here, by its only writer, just before use
       if (gl || (gxp && !pj))
-        backward_level(kind, base::LevelArgs{px, N, pt + l * T * F, ps + 3 * l, pc + 3 * l, mask}, F,
+        backward_level(kind, base::LevelArgs{px, N, pt + off[l] * F, ps + 3 * l, pc + 3 * l, mask}, F,
                        g + l * N * F, gl, pj ? nullptr : gxp);
       if (gxp && pj) contract_level(N, F, g + l * N * F, pj + l * 3 * F * N, gxp);
     }
@@ -408,26 +424,28 @@ std::vector<torch::Tensor> backward_impl(Kind kind, torch::Tensor grad_out, torc
 
 }  // namespace
 
-std::vector<torch::Tensor> permuto_forward(torch::Tensor x, torch::Tensor table, torch::Tensor coef,
-                                           torch::Tensor shifts, bool need_jac, double bound) {
-  return forward_impl(Kind::permuto, x, table, coef, shifts, need_jac, bound);
+std::vector<torch::Tensor> permuto_forward(torch::Tensor x, torch::Tensor table, torch::Tensor offsets,
+                                           torch::Tensor coef, torch::Tensor shifts, bool need_jac, double bound) {
+  return forward_impl(Kind::permuto, x, table, offsets, coef, shifts, need_jac, bound);
 }
 
 std::vector<torch::Tensor> permuto_backward(torch::Tensor grad_out, torch::Tensor x, torch::Tensor table,
-                                            torch::Tensor coef, torch::Tensor shifts, std::optional<torch::Tensor> jac,
-                                            bool need_table, bool need_x, double bound) {
-  return backward_impl(Kind::permuto, grad_out, x, table, coef, shifts, jac, need_table, need_x, bound);
+                                            torch::Tensor offsets, torch::Tensor coef, torch::Tensor shifts,
+                                            std::optional<torch::Tensor> jac, bool need_table, bool need_x,
+                                            double bound) {
+  return backward_impl(Kind::permuto, grad_out, x, table, offsets, coef, shifts, jac, need_table, need_x, bound);
 }
 
-std::vector<torch::Tensor> cubic_forward(torch::Tensor x, torch::Tensor table, torch::Tensor coef,
-                                         torch::Tensor shifts, bool need_jac, double bound) {
-  return forward_impl(Kind::cubic, x, table, coef, shifts, need_jac, bound);
+std::vector<torch::Tensor> cubic_forward(torch::Tensor x, torch::Tensor table, torch::Tensor offsets,
+                                         torch::Tensor coef, torch::Tensor shifts, bool need_jac, double bound) {
+  return forward_impl(Kind::cubic, x, table, offsets, coef, shifts, need_jac, bound);
 }
 
 std::vector<torch::Tensor> cubic_backward(torch::Tensor grad_out, torch::Tensor x, torch::Tensor table,
-                                          torch::Tensor coef, torch::Tensor shifts, std::optional<torch::Tensor> jac,
-                                          bool need_table, bool need_x, double bound) {
-  return backward_impl(Kind::cubic, grad_out, x, table, coef, shifts, jac, need_table, need_x, bound);
+                                          torch::Tensor offsets, torch::Tensor coef, torch::Tensor shifts,
+                                          std::optional<torch::Tensor> jac, bool need_table, bool need_x,
+                                          double bound) {
+  return backward_impl(Kind::cubic, grad_out, x, table, offsets, coef, shifts, jac, need_table, need_x, bound);
 }
 
 // Hashed rows and barycentric weights of one level's simplices, from the kernel's own code (the
@@ -458,25 +476,26 @@ std::vector<torch::Tensor> permuto_simplices(torch::Tensor x, torch::Tensor coef
 
 // The machine's limit for this access pattern: per point and level, `reads` random reads and
 // `updates` random read-modify-writes (into a scratch table) of F floats, in a table like `table`
-// [L, T, F], scheduled like the kernels (one task per level, blocks of prefetched rows).
+// [R, F] with `offsets` [L + 1], scheduled like the kernels (one task per level, blocks of prefetched rows).
 // Returns a checksum so that nothing is optimised away.
-double random_access(torch::Tensor table, int64_t n_points, int64_t reads, int64_t updates) {
-  TORCH_CHECK(table.device().is_cpu() && table.scalar_type() == torch::kFloat32 && table.dim() == 3,
-              "table must be a CPU float32 [L, T, F] tensor");
+double random_access(torch::Tensor table, torch::Tensor offsets, int64_t n_points, int64_t reads, int64_t updates) {
+  TORCH_CHECK(table.device().is_cpu() && table.scalar_type() == torch::kFloat32 && table.dim() == 2,
+              "table must be a CPU float32 [R, F] tensor");
   TORCH_CHECK(reads >= 0 && updates >= 0 && reads + updates <= 16, "need 0 <= reads + updates <= 16");
   table = table.contiguous();
-  const int64_t L = table.size(0), T = table.size(1), F = table.size(2);
-  TORCH_CHECK(T > 0 && (T & (T - 1)) == 0, "capacity must be a power of two");
-  auto upd = updates > 0 ? pooled_empty({L, T, F}) : torch::Tensor();
+  const int64_t L = offsets.size(0) - 1, F = table.size(1);
+  const std::vector<int64_t> off = level_offsets(offsets, L, table);
+  auto upd = updates > 0 ? pooled_empty({table.size(0), F}) : torch::Tensor();
   const float* pt = table.data_ptr<float>();
   float* pu = updates > 0 ? upd.data_ptr<float>() : nullptr;
-  const uint32_t mask = (uint32_t)(T - 1);
   const int64_t m = reads + updates;
   double total = 0.0;
 #pragma omp parallel for num_threads(threads_for(L)) schedule(dynamic, 1) reduction(+ : total)
   for (int64_t l = 0; l < L; ++l) {
-    const float* tl = pt + l * T * F;
-    float* ul = pu ? pu + l * T * F : nullptr;
+    const int64_t T = off[l + 1] - off[l];
+    const uint32_t mask = (uint32_t)(T - 1);
+    const float* tl = pt + off[l] * F;
+    float* ul = pu ? pu + off[l] * F : nullptr;
     if (ul) std::memset(ul, 0, sizeof(float) * T * F);
     float s = 0.f;
     uint32_t off[2][BLOCK][16];

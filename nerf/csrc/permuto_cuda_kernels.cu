@@ -107,16 +107,17 @@ struct CubicLat {
 
 template <class Lat>
 __global__ void forward_kernel(const float* __restrict__ x, const float* __restrict__ table,
-                               const float* __restrict__ coef, const float* __restrict__ shifts,
-                               float* __restrict__ out, int64_t N, int64_t L, int64_t T, int64_t F) {
+                               const int64_t* __restrict__ offsets, const float* __restrict__ coef,
+                               const float* __restrict__ shifts, float* __restrict__ out, int64_t N, int64_t L,
+                               int64_t F) {
   const int64_t idx = (int64_t)blockIdx.x * blockDim.x + threadIdx.x;
   if (idx >= N * L) return;
   const int64_t l = idx / N, n = idx % N;  // consecutive threads: same level, consecutive points
   uint32_t row[Lat::V];
   float w[Lat::V];
   typename Lat::Aux aux;
-  Lat::locate(x + 3 * n, shifts + 3 * l, coef + 3 * l, (uint32_t)(T - 1), row, w, aux);
-  const float* tl = table + l * T * F;
+  Lat::locate(x + 3 * n, shifts + 3 * l, coef + 3 * l, (uint32_t)(offsets[l + 1] - offsets[l] - 1), row, w, aux);
+  const float* tl = table + offsets[l] * F;
   float* o = out + n * L * F + l * F;
   for (int64_t f = 0; f < F; ++f) {
     float acc = 0.f;
@@ -127,24 +128,24 @@ __global__ void forward_kernel(const float* __restrict__ x, const float* __restr
 
 template <class Lat>
 __global__ void backward_kernel(const float* __restrict__ grad_out, const float* __restrict__ x,
-                                const float* __restrict__ table, const float* __restrict__ coef,
-                                const float* __restrict__ shifts, float* __restrict__ gtable, float* __restrict__ gx,
-                                int64_t N, int64_t L, int64_t T, int64_t F) {
+                                const float* __restrict__ table, const int64_t* __restrict__ offsets,
+                                const float* __restrict__ coef, const float* __restrict__ shifts,
+                                float* __restrict__ gtable, float* __restrict__ gx, int64_t N, int64_t L, int64_t F) {
   const int64_t idx = (int64_t)blockIdx.x * blockDim.x + threadIdx.x;
   if (idx >= N * L) return;
   const int64_t l = idx / N, n = idx % N;
   uint32_t row[Lat::V];
   float w[Lat::V];
   typename Lat::Aux aux;
-  Lat::locate(x + 3 * n, shifts + 3 * l, coef + 3 * l, (uint32_t)(T - 1), row, w, aux);
+  Lat::locate(x + 3 * n, shifts + 3 * l, coef + 3 * l, (uint32_t)(offsets[l + 1] - offsets[l] - 1), row, w, aux);
   const float* g = grad_out + n * L * F + l * F;
   if (gtable) {
-    float* gl = gtable + l * T * F;
+    float* gl = gtable + offsets[l] * F;
     for (int k = 0; k < Lat::V; ++k)
       for (int64_t f = 0; f < F; ++f) atomicAdd(gl + (int64_t)row[k] * F + f, w[k] * g[f]);
   }
   if (gx) {
-    const float* tl = table + l * T * F;
+    const float* tl = table + offsets[l] * F;
     float dot[Lat::V];
     for (int k = 0; k < Lat::V; ++k) {
       float d = 0.f;
@@ -165,28 +166,30 @@ const char* status() {
 }  // namespace
 
 // kind: 0 permutohedral, 1 cubic. Return nullptr, or the CUDA error message.
-const char* pag_cuda_forward(int kind, const float* x, const float* table, const float* coef, const float* shifts,
-                             float* out, int64_t N, int64_t L, int64_t T, int64_t F, void* stream) {
+const char* pag_cuda_forward(int kind, const float* x, const float* table, const int64_t* offsets, const float* coef,
+                             const float* shifts, float* out, int64_t N, int64_t L, int64_t F, void* stream) {
   const int64_t total = N * L;
   if (total == 0) return nullptr;
   const unsigned blocks = (unsigned)((total + THREADS - 1) / THREADS);
   cudaStream_t s = (cudaStream_t)stream;
-  if (kind == 0) forward_kernel<PermutoLat><<<blocks, THREADS, 0, s>>>(x, table, coef, shifts, out, N, L, T, F);
-  else forward_kernel<CubicLat><<<blocks, THREADS, 0, s>>>(x, table, coef, shifts, out, N, L, T, F);
+  if (kind == 0) forward_kernel<PermutoLat><<<blocks, THREADS, 0, s>>>(x, table, offsets, coef, shifts, out, N, L, F);
+  else forward_kernel<CubicLat><<<blocks, THREADS, 0, s>>>(x, table, offsets, coef, shifts, out, N, L, F);
   return status();
 }
 
 // gtable and gx must be zero-filled; either may be null.
-const char* pag_cuda_backward(int kind, const float* grad_out, const float* x, const float* table, const float* coef,
-                              const float* shifts, float* gtable, float* gx, int64_t N, int64_t L, int64_t T,
-                              int64_t F, void* stream) {
+const char* pag_cuda_backward(int kind, const float* grad_out, const float* x, const float* table,
+                              const int64_t* offsets, const float* coef, const float* shifts, float* gtable,
+                              float* gx, int64_t N, int64_t L, int64_t F, void* stream) {
   const int64_t total = N * L;
   if (total == 0 || (!gtable && !gx)) return nullptr;
   const unsigned blocks = (unsigned)((total + THREADS - 1) / THREADS);
   cudaStream_t s = (cudaStream_t)stream;
   if (kind == 0)
-    backward_kernel<PermutoLat><<<blocks, THREADS, 0, s>>>(grad_out, x, table, coef, shifts, gtable, gx, N, L, T, F);
+    backward_kernel<PermutoLat><<<blocks, THREADS, 0, s>>>(grad_out, x, table, offsets, coef, shifts, gtable, gx, N, L,
+                                                           F);
   else
-    backward_kernel<CubicLat><<<blocks, THREADS, 0, s>>>(grad_out, x, table, coef, shifts, gtable, gx, N, L, T, F);
+    backward_kernel<CubicLat><<<blocks, THREADS, 0, s>>>(grad_out, x, table, offsets, coef, shifts, gtable, gx, N, L,
+                                                         F);
   return status();
 }

@@ -121,7 +121,7 @@ def test_features_are_continuous_across_simplex_boundaries(backend):
     step = 2e-5
     t = torch.arange(0, 25000, dtype=torch.float32)[:, None] * step
     line = torch.tensor([[-0.3, 0.2, 0.1]]) + t * torch.tensor([[0.6, -0.48, 0.64]])  # unit direction
-    rows, _ = lattice(line, permuto_coefficients(enc.scales), enc.shifts, enc.table.shape[1] - 1)
+    rows, _ = lattice(line, permuto_coefficients(enc.scales), enc.shifts, enc.rows[0] - 1)
     crossing = (rows[0, 1:].sort(1).values != rows[0, :-1].sort(1).values).any(1)
     assert crossing.sum() > 5  # the line does pass through several simplices
     with torch.no_grad():
@@ -135,10 +135,9 @@ def test_reference_gradcheck_in_double():
     g = torch.Generator().manual_seed(0)
     x = (torch.rand(6, 3, generator=g, dtype=torch.float64) - 0.5).requires_grad_()
     table = enc.table.detach().clone().requires_grad_()
-    assert torch.autograd.gradcheck(lambda p, t: permuto_encode_reference(p, t, enc.scales, enc.shifts), (x, table),
-                                    eps=1e-6, atol=1e-5)
-    assert torch.autograd.gradcheck(lambda p, t: cubic_encode_reference(p, t, enc.scales, enc.shifts), (x, table),
-                                    eps=1e-6, atol=1e-5)
+    for ref in (permuto_encode_reference, cubic_encode_reference):
+        assert torch.autograd.gradcheck(lambda p, t: ref(p, t, enc.offsets, enc.scales, enc.shifts), (x, table),
+                                        eps=1e-6, atol=1e-5)
 
 
 @pytest.mark.parametrize("cls", [PermutoEncoding, CubicHashEncoding])
@@ -161,6 +160,68 @@ def test_thread_count_does_not_change_results(cls):
     for y, gt, gx in outs[1:]:
         assert torch.equal(y, outs[0][0]) and torch.equal(gt, outs[0][1])  # one writer per level: deterministic
         assert rel_err(gx, outs[0][2]) < 1e-6  # only the order of the per-level sums differs
+
+
+@pytest.mark.parametrize("cls", [PermutoEncoding, CubicHashEncoding])
+def test_levels_with_fewer_rows_match_the_reference_and_use_only_their_rows(cls):
+    fused_ext()
+    rows = [16, 64, 1024, 256, 1024, 32, 1024, 1024]
+    fused, ref = (cls(**KW, backend=b) for b in ("fused", "torch"))
+    for enc in (fused, ref):
+        enc.set_rows(rows)
+    ref.load_state_dict(fused.state_dict())
+    assert fused.rows == rows and fused.table.shape == (sum(rows), KW["n_features"])
+    x1 = points().requires_grad_()
+    x2 = x1.detach().clone().requires_grad_()
+    a, b = fused(x1), ref(x2)
+    assert rel_err(a, b) < 1e-5
+    g = torch.randn_like(a)
+    a.backward(g)
+    b.backward(g)
+    assert rel_err(fused.table.grad, ref.table.grad) < 1e-5 and rel_err(x1.grad, x2.grad) < 1e-5
+    # each level reads its own rows: a level's features depend on its slice of the table and on nothing else
+    lvl, f = 1, KW["n_features"]
+    with torch.no_grad():
+        fused.table[sum(rows[:lvl]):sum(rows[:lvl + 1])] += 1.0
+    moved = (fused(x1) - a).detach().abs().amax(0).reshape(len(rows), f).amax(1)
+    assert moved[lvl] > 0.5 and float(moved[torch.arange(len(rows)) != lvl].max()) == 0.0
+
+
+def test_size_levels_gives_coarse_levels_the_rows_their_vertices_use():
+    enc = PermutoEncoding(n_levels=6, n_features=2, log2_capacity=16, coarsest_scale=0.5, finest_scale=0.002)
+    g = torch.Generator().manual_seed(0)
+    surface = torch.rand(20000, 3, generator=g) * torch.tensor([0.4, 0.4, 0.0]) - 0.2  # a 0.4 x 0.4 square
+    touched = enc.touched_rows(surface)
+    assert touched == sorted(touched) and touched[0] < 20 and touched[-1] > 5000  # coarse levels: few vertices
+    rows = enc.size_levels(surface, headroom=32)
+    assert enc.rows == rows and enc.table.shape[0] == sum(rows)
+    for n, r in zip(touched, rows):  # a power of two from 32x to 64x the vertices, or the whole capacity
+        assert r & (r - 1) == 0 and (32 * n <= r < 64 * n or r == 2 ** 16)
+    assert rows[0] < 2 ** 10 and rows[-1] == 2 ** 16
+    assert enc.size_levels(torch.zeros(0, 3)) == rows  # no points: the rows stay
+
+
+def test_rows_per_level_come_with_the_state_and_old_tables_load():
+    enc = PermutoEncoding(**KW)
+    enc.set_rows([16, 32, 64, 128, 256, 512, 1024, 1024])
+    x = points()
+    other = PermutoEncoding(**KW)
+    other.load_state_dict(enc.state_dict())
+    assert other.rows == enc.rows and torch.equal(other(x), enc(x))
+    # a table from before per-level rows, [L, T, F]: L levels of T rows, the same features
+    full = PermutoEncoding(**KW)
+    old = {k: v for k, v in full.state_dict().items() if k != "offsets"}
+    old["table"] = old["table"].reshape(KW["n_levels"], -1, KW["n_features"])
+    enc.load_state_dict(old)
+    assert enc.rows == [2 ** KW["log2_capacity"]] * KW["n_levels"] and torch.equal(enc(x), full(x))
+
+
+def test_full_capacity_table_draws_the_numbers_of_a_level_by_level_table():
+    enc = PermutoEncoding(**KW)
+    g = torch.Generator().manual_seed(0)
+    torch.rand(KW["n_levels"], 3, generator=g)
+    want = torch.randn(KW["n_levels"], 2 ** KW["log2_capacity"], KW["n_features"], generator=g) * KW["init_std"]
+    assert torch.equal(enc.table.detach(), want.reshape(-1, KW["n_features"]))
 
 
 def test_empty_batch():
@@ -281,6 +342,7 @@ def test_narrower_x86_builds_match_the_reference(env):
 @pytest.mark.parametrize("cls", [PermutoEncoding, CubicHashEncoding])
 def test_cuda_matches_cpu_reference(cls):
     cpu = cls(**KW, backend="torch")
+    cpu.set_rows([16, 64, 1024, 256, 1024, 32, 1024, 1024])   # levels of their own sizes
     gpu = cls(**KW, backend="auto").cuda()
     gpu.load_state_dict(cpu.state_dict())
     x = points()
