@@ -110,3 +110,35 @@ def draw_label_pixels(labelled: np.ndarray, things: np.ndarray, n: int, share: f
     q = (1 - s) / pool.size + np.where(on_thing, s / max(thing_px.size, 1), 0.0)
     w = (1.0 / pool.size) / q
     return px, w / w.max()  # <= 1: the semantic loss takes weights in [0, 1]
+
+
+class LabelPixels:
+    """One frame's pixels indexed once for draw: the same draws as draw_label_pixels(labelled, things, ...) with
+    the same generator, without scanning the full-size masks at every step. The labelled pixels are not listed
+    (a 1280x720 frame's would be 3.7 MB): the k-th is k plus the unlabelled pixels before it, found in the
+    sorted list of those (few)."""
+
+    def __init__(self, labelled: np.ndarray, things: np.ndarray):
+        self.things = things.ravel()
+        self.thing_px = np.flatnonzero(things)
+        void = np.flatnonzero(~labelled.ravel())
+        self.size = labelled.size
+        self.n_labelled = self.size - len(void)
+        # unlabelled pixel j has void[j] - j labelled pixels before it (none labelled: every pixel is the pool)
+        self._gaps = void - np.arange(len(void)) if self.n_labelled else np.zeros(0, np.int64)
+
+    def labelled_pixel(self, k: np.ndarray) -> np.ndarray:
+        """Flat index of the k-th labelled pixel (the k-th pixel where none is labelled), k [n] ints."""
+        return k + np.searchsorted(self._gaps, k, side="right")
+
+    def draw(self, n: int, share: float, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+        """draw_label_pixels of this frame: (flat pixel indices [n], importance weights [n])."""
+        pool_size = self.n_labelled or self.size
+        n_thing = int(round(n * share)) if self.thing_px.size else 0
+        s = n_thing / n
+        picks = [self.thing_px[rng.integers(0, self.thing_px.size, n_thing)]] if n_thing else []
+        picks.append(self.labelled_pixel(rng.integers(0, pool_size, n - n_thing)))
+        px = np.concatenate(picks)
+        q = (1 - s) / pool_size + np.where(self.things[px], s / max(self.thing_px.size, 1), 0.0)
+        w = (1.0 / pool_size) / q
+        return px, w / w.max()

@@ -37,7 +37,7 @@ from nerf.panoptic.labels import VOID, WindowLabels
 from nerf.panoptic.losses import consistency_loss, instance_loss, semantic_loss
 from nerf.panoptic.result import PanopticResult
 from nerf.panoptic.samples import panoptic_field, ray_probs, weighted_samples
-from nerf.pixel_sampling import draw_label_pixels
+from nerf.pixel_sampling import LabelPixels
 from nerf.render import pixel_rays
 from nerf.trainer import NonFiniteLoss
 
@@ -102,11 +102,10 @@ def fit_panoptic(model: NerfModel, labels: WindowLabels, is_train: np.ndarray, d
     memory = SlotMemory(n_slots)
     sem_t = torch.from_numpy(labels.semantic)
     inst_t = torch.from_numpy(labels.instance)
+    pixels = {int(i): LabelPixels(labels.semantic[i] != VOID, things_all[i]) for i in train}
     for step in range(cfg.steps):
         frames = rng.choice(train, size=min(cfg.frames_per_step, len(train)), replace=False)
-        draws = [draw_label_pixels(labels.semantic[i] != VOID, things_all[i], cfg.rays_per_frame,
-                                   cfg.thing_ray_share, rng)
-                 for i in frames]
+        draws = [pixels[int(i)].draw(cfg.rays_per_frame, cfg.thing_ray_share, rng) for i in frames]
         fi = torch.from_numpy(np.repeat(frames, [len(p) for p, _ in draws])).long()
         flat = torch.from_numpy(np.concatenate([p for p, _ in draws])).long()
         importance = torch.from_numpy(np.concatenate([q for _, q in draws])).float().to(dev)

@@ -17,6 +17,25 @@ def test_thing_oversampling_is_undone_by_importance_weights():
     assert w.max() == 1.0 and (w > 0).all()
 
 
+def test_indexed_frame_draws_what_the_mask_scans_draw():
+    from nerf.pixel_sampling import LabelPixels, draw_label_pixels
+
+    g = np.random.default_rng(5)
+    labelled = g.random((30, 40)) > 0.2            # a fifth of the pixels unlabelled, scattered
+    labelled[0, :7] = labelled[-1, -5:] = False     # runs of them at both ends
+    things = labelled & (g.random((30, 40)) > 0.9)
+    cases = [(labelled, things), (labelled, np.zeros_like(things)),          # no fruit in the frame
+             (np.zeros_like(labelled), np.zeros_like(things)),               # nothing labelled: every pixel
+             (np.ones_like(labelled), things)]                               # everything labelled
+    for lab, th in cases:
+        frame = LabelPixels(lab, th)
+        for seed in range(3):
+            want = draw_label_pixels(lab, th, 384, 0.5, np.random.default_rng(seed))
+            got = frame.draw(384, 0.5, np.random.default_rng(seed))
+            assert np.array_equal(got[0], want[0]) and np.array_equal(got[1], want[1])
+        assert lab.ravel()[frame.draw(500, 0.5, np.random.default_rng(9))[0]].all() or not lab.any()
+
+
 def test_edge_rays_are_drawn_where_the_image_has_texture():
     from nerf.pixel_sampling import draw_from_cdf, gradient_cdf
 
