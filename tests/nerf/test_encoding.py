@@ -193,6 +193,9 @@ def test_size_levels_gives_coarse_levels_the_rows_their_vertices_use():
     surface = torch.rand(20000, 3, generator=g) * torch.tensor([0.4, 0.4, 0.0]) - 0.2  # a 0.4 x 0.4 square
     touched = enc.touched_rows(surface)
     assert touched == sorted(touched) and touched[0] < 20 and touched[-1] > 5000  # coarse levels: few vertices
+    ref = PermutoEncoding(n_levels=6, n_features=2, log2_capacity=16, coarsest_scale=0.5, finest_scale=0.002,
+                          backend="torch")
+    assert ref.touched_rows(surface) == touched   # the kernel's simplices (where built) count what the reference does
     rows = enc.size_levels(surface, headroom=32)
     assert enc.rows == rows and enc.table.shape[0] == sum(rows)
     for n, r in zip(touched, rows):  # a power of two from 32x to 64x the vertices, or the whole capacity
