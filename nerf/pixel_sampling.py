@@ -3,7 +3,7 @@
 Colour (and pose registration): uniform over the frames' pixels, with a share drawn in proportion to the
 image's colour gradient magnitude (`gradient_cdf`, `draw_pixels`). Panoptic: per frame, a share on the
 detected thing segments and the rest over the labelled pixels, with importance weights that undo the
-oversampling (`draw_label_pixels`). Both draw from one seeded generator each (torch for the colour phase,
+oversampling (`LabelPixels`). Both draw from one seeded generator each (torch for the colour phase,
 numpy for the panoptic phase), so a fit is reproducible from its seed.
 """
 from __future__ import annotations
@@ -92,31 +92,10 @@ def draw_pixels(idx: Tensor, n: int, h: int, w: int, g: torch.Generator, cdf: Gr
     return frames, u, v
 
 
-def draw_label_pixels(labelled: np.ndarray, things: np.ndarray, n: int, share: float,
-                      rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-    """Flat pixel indices of one frame, `share` of them on `things` pixels [H, W] and the rest over the
-    `labelled` pixels [H, W] (all pixels if none is), with each draw's importance weight p/q (p = uniform over
-    labelled pixels, q = the mixture actually sampled; scaled to a maximum of 1), so a loss weighted by it
-    sees the labels in their true proportions."""
-    thing_px = np.flatnonzero(things)
-    labelled_px = np.flatnonzero(labelled)
-    pool = labelled_px if labelled_px.size else np.arange(labelled.size)
-    n_thing = int(round(n * share)) if thing_px.size else 0
-    s = n_thing / n
-    picks = [thing_px[rng.integers(0, thing_px.size, n_thing)]] if n_thing else []
-    picks.append(pool[rng.integers(0, pool.size, n - n_thing)])
-    px = np.concatenate(picks)
-    on_thing = things.ravel()[px]
-    q = (1 - s) / pool.size + np.where(on_thing, s / max(thing_px.size, 1), 0.0)
-    w = (1.0 / pool.size) / q
-    return px, w / w.max()  # <= 1: the semantic loss takes weights in [0, 1]
-
-
 class LabelPixels:
-    """One frame's pixels indexed once for draw: the same draws as draw_label_pixels(labelled, things, ...) with
-    the same generator, without scanning the full-size masks at every step. The labelled pixels are not listed
-    (a 1280x720 frame's would be 3.7 MB): the k-th is k plus the unlabelled pixels before it, found in the
-    sorted list of those (few)."""
+    """One frame's labelled pixels [H, W] and thing pixels [H, W], indexed once for the panoptic steps' draws, so
+    a step does not scan the full-size masks. The labelled pixels are not listed (a 1280x720 frame's would be 3.7
+    MB): the k-th is k plus the unlabelled pixels before it, found in the sorted list of those (few)."""
 
     def __init__(self, labelled: np.ndarray, things: np.ndarray):
         self.things = things.ravel()
@@ -132,7 +111,10 @@ class LabelPixels:
         return k + np.searchsorted(self._gaps, k, side="right")
 
     def draw(self, n: int, share: float, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-        """draw_label_pixels of this frame: (flat pixel indices [n], importance weights [n])."""
+        """Flat pixel indices [n], `share` of them on thing pixels and the rest over the labelled pixels (all pixels
+        if none is), with each draw's importance weight p/q (p = uniform over labelled pixels, q = the mixture
+        actually sampled; scaled to a maximum of 1: the semantic loss takes weights in [0, 1]), so a loss
+        weighted by it sees the labels in their true proportions."""
         pool_size = self.n_labelled or self.size
         n_thing = int(round(n * share)) if self.thing_px.size else 0
         s = n_thing / n

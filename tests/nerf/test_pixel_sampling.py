@@ -4,21 +4,34 @@ import torch
 
 
 def test_thing_oversampling_is_undone_by_importance_weights():
-    from nerf.pixel_sampling import draw_label_pixels
+    from nerf.pixel_sampling import LabelPixels
 
     sem = np.ones((40, 50), np.uint8)
     things = np.zeros((40, 50), bool)
     things[:4, :5] = True                        # 1 % of the pixels are fruit
     sem[things] = 4
-    px, w = draw_label_pixels(sem != 255, things, 20000, 0.5, np.random.default_rng(0))
+    px, w = LabelPixels(sem != 255, things).draw(20000, 0.5, np.random.default_rng(0))
     on = things.ravel()[px]
     assert 0.45 < on.mean() < 0.55                # half the rays land on fruit ...
     assert abs((w * on).sum() / w.sum() - 0.01) < 0.003   # ... but weigh as 1 % of the image
     assert w.max() == 1.0 and (w > 0).all()
 
 
+def scanned_draw(labelled, things, n, share, rng):
+    """The draws as the masks say them, each list of pixels scanned out of the masks (the reference)."""
+    thing_px, labelled_px = np.flatnonzero(things), np.flatnonzero(labelled)
+    pool = labelled_px if labelled_px.size else np.arange(labelled.size)
+    n_thing = int(round(n * share)) if thing_px.size else 0
+    s = n_thing / n
+    picks = [thing_px[rng.integers(0, thing_px.size, n_thing)]] if n_thing else []
+    px = np.concatenate(picks + [pool[rng.integers(0, pool.size, n - n_thing)]])
+    q = (1 - s) / pool.size + np.where(things.ravel()[px], s / max(thing_px.size, 1), 0.0)
+    w = (1.0 / pool.size) / q
+    return px, w / w.max()
+
+
 def test_indexed_frame_draws_what_the_mask_scans_draw():
-    from nerf.pixel_sampling import LabelPixels, draw_label_pixels
+    from nerf.pixel_sampling import LabelPixels
 
     g = np.random.default_rng(5)
     labelled = g.random((30, 40)) > 0.2            # a fifth of the pixels unlabelled, scattered
@@ -30,7 +43,7 @@ def test_indexed_frame_draws_what_the_mask_scans_draw():
     for lab, th in cases:
         frame = LabelPixels(lab, th)
         for seed in range(3):
-            want = draw_label_pixels(lab, th, 384, 0.5, np.random.default_rng(seed))
+            want = scanned_draw(lab, th, 384, 0.5, np.random.default_rng(seed))
             got = frame.draw(384, 0.5, np.random.default_rng(seed))
             assert np.array_equal(got[0], want[0]) and np.array_equal(got[1], want[1])
         assert lab.ravel()[frame.draw(500, 0.5, np.random.default_rng(9))[0]].all() or not lab.any()
