@@ -168,9 +168,12 @@ class _FusedEncode(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, x: Tensor, table: Tensor, offsets: Tensor, coef: Tensor, shifts: Tensor, ext, kind: str,
-                need_jac: bool, bound: float | None = None) -> Tensor:
+                need_jac: bool, bound: float | None = None, known: Tensor | None = None) -> Tensor:
         ctx.extra = () if bound is None else (bound,)
-        out, jac = getattr(ext, f"{kind}_forward")(x, table, offsets, coef, shifts, need_jac, *ctx.extra)
+        if known is not None and not need_jac:  # the features at x, from an earlier no-grad call: no forward
+            out, jac = known, None
+        else:
+            out, jac = getattr(ext, f"{kind}_forward")(x, table, offsets, coef, shifts, need_jac, *ctx.extra)
         ctx.save_for_backward(x, table, offsets, coef, shifts)
         ctx.ext, ctx.kind, ctx.jac = ext, kind, jac
         return out
@@ -182,7 +185,7 @@ class _FusedEncode(torch.autograd.Function):
         g_table, g_x = getattr(ctx.ext, f"{ctx.kind}_backward")(grad_out.float().contiguous(), x, table, offsets,
                                                                 coef, shifts, ctx.jac, need_table, need_x, *ctx.extra)
         ctx.jac = None
-        return (g_x if need_x else None), (g_table if need_table else None), *([None] * 7)
+        return (g_x if need_x else None), (g_table if need_table else None), *([None] * 8)
 
 
 class PermutoEncoding(nn.Module):
@@ -304,7 +307,10 @@ class PermutoEncoding(nn.Module):
         """[L, 3] per-level, per-axis factors applied to (x + shift)."""
         return permuto_coefficients(self.scales) if self.kind == "permuto" else cubic_coefficients(self.scales)
 
-    def forward(self, x: Tensor) -> Tensor:
+    def forward(self, x: Tensor, known: Tensor | None = None) -> Tensor:
+        """x [N, 3] -> features [N, L * F]. `known`: the features at these very points from an earlier call
+        without gradients (a training step's visibility pass): the fused kernels return them with their
+        backward and skip the forward; the torch reference computes them again."""
         if x.dim() != 2 or x.shape[1] != 3:
             raise ValueError(f"expected positions [N, 3], got {tuple(x.shape)}")
         with torch.autocast(device_type=x.device.type, enabled=False):
@@ -316,7 +322,8 @@ class PermutoEncoding(nn.Module):
             if fused:
                 need_jac = JACOBIAN_IN_FORWARD and torch.is_grad_enabled() and x.requires_grad
                 return _FusedEncode.apply(x.contiguous(), self.table, self._offsets_cpu, self.coef.float(),
-                                          self.shifts.float(), ext, self.kind, need_jac, b if kernel_clamps else None)
+                                          self.shifts.float(), ext, self.kind, need_jac, b if kernel_clamps else None,
+                                          known)
             ref = permuto_encode_reference if self.kind == "permuto" else cubic_encode_reference
             return ref(x.to(self.table.dtype), self.table, self._offsets_cpu, self.scales.to(self.table.dtype),
                        self.shifts.to(self.table.dtype))

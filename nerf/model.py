@@ -10,8 +10,9 @@ from torch import Tensor
 
 from nerf.config import NerfConfig, config_from_state
 from nerf.fields import Field, build_field
+from nerf.fields.base import ColourWhere
 from nerf.occupancy import OccupancyGrid
-from nerf.render import Rounds, Samples, composite, cone_steps, pixel_rays, ray_points, round_size
+from nerf.render import Rounds, Samples, composite, cone_steps, HeavySamples, pixel_rays, ray_points, round_size
 from nerf.window import Scene
 
 
@@ -57,19 +58,21 @@ class NerfModel:
         lo, hi = self.scene.lo, self.scene.hi
         return lambda p: ((p >= lo) & (p <= hi)).all(-1)
 
-    def shade(self, o: Tensor, d: Tensor, s: Samples, colour: bool = True
-              ) -> tuple[Tensor, Tensor | None, Tensor, Tensor]:
+    def shade(self, o: Tensor, d: Tensor, s: Samples, colour: bool = True, colour_where: ColourWhere | None = None,
+              grid_features: Tensor | None = None) -> tuple[Tensor, Tensor | None, Tensor, Tensor]:
         """Field at packed samples -> (sigma [S], rgb [S, 3], world points [S, 3], features [S, feature_dim]);
-        colour False: rgb None, the colour decoder skipped."""
+        colour False: rgb None, the colour decoder skipped; colour_where: only where it says (0 elsewhere);
+        grid_features: the grid's features at these samples from a no-grad pass (visible_samples)."""
         x, dn = ray_points(o, d, s, with_dirs=colour)
-        sigma, rgb, g = self.field(self.scene.normalise(x), dn)
+        sigma, rgb, g = self.field(self.scene.normalise(x), dn, colour_where, grid_features)
         return sigma, rgb, x, g
 
     @torch.no_grad()
     def render_rays(self, o: Tensor, d: Tensor, round_samples: int = 32) -> dict[str, Tensor]:
         """Render rays in rounds of occupied samples per ray (8, 16, then `round_samples` each: most rays
         meet an opaque surface within their first few occupied samples), dropping rays whose
-        transmittance fell below cfg.early_stop_transmittance (or that have no samples left)."""
+        transmittance fell below cfg.early_stop_transmittance (or that have no samples left). Only samples of
+        weight >= RENDER_COLOUR_MIN_WEIGHT go through the colour decoder."""
         n = o.shape[0]
         edges = self.edges(o.device)
         occ = self.occupied_fn()
@@ -87,7 +90,7 @@ class NerfModel:
             first += per_ray
             if len(s) == 0:
                 break
-            sigma, col, _, _ = self.shade(o[active], d[active], s)
+            sigma, col, _, _ = self.shade(o[active], d[active], s, colour_where=HeavySamples(s, trans[active]))
             c, dsum, left = composite(sigma, col, s)
             rgb.index_add_(0, active, c * trans[active, None])
             depth.index_add_(0, active, dsum * trans[active])

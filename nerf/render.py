@@ -245,6 +245,30 @@ def composite_weights(sigma: Tensor, delta: Tensor, ray_index: Tensor, n_rays: i
     return w, torch.exp(-total)
 
 
+RENDER_COLOUR_MIN_WEIGHT = 1e-4
+"""A render runs the colour decoder only on samples whose compositing weight reaches this (unitless, 0-1; the
+others add at most their weight to a channel). Window 2 of the bup20 row at 320x180: 25-33 % of the marched
+samples, the colour within 79-81 dB PSNR of colouring every sample (one 8-bit step is 59 dB)."""
+
+
+class HeavySamples:
+    """A field's colour_where for a render round: sigma [S] -> the samples of `s` whose weight, times the
+    transmittance ray_trans [R] their ray arrives with, is at least min_weight (default RENDER_COLOUR_MIN_WEIGHT).
+    After the call, `weights` [S] (times ray_trans) and `left` [R] are composite_weights' for the caller to reuse."""
+
+    def __init__(self, s: Samples, ray_trans: Tensor, min_weight: float | None = None):
+        self.s, self.ray_trans = s, ray_trans
+        self.min_weight = RENDER_COLOUR_MIN_WEIGHT if min_weight is None else min_weight
+        self.weights: Tensor | None = None
+        self.left: Tensor | None = None
+
+    def __call__(self, sigma: Tensor) -> Tensor:
+        s = self.s
+        w, self.left = composite_weights(sigma.detach(), s.delta, s.ray_index, s.n_rays)
+        self.weights = w * self.ray_trans[s.ray_index]
+        return self.weights >= self.min_weight
+
+
 def exclusive_cumsum_per_ray(x: Tensor, ray_index: Tensor, n_rays: int) -> Tensor:
     """sum_{j < i, same ray} x_j for packed x [S] (ray_index non-decreasing): scattered into a
     [n_rays, max samples per ray] layout, summed along each row, gathered back. Exact per ray (no

@@ -25,7 +25,7 @@ from nerf.model import NerfModel, depth_points, init_occupancy
 from nerf.occupancy import OccupancyGrid
 from nerf.pixel_sampling import GradientCDF, draw_pixels, gradient_cdf
 from nerf.poses import PoseCorrection
-from nerf.render import Samples, composite, march, pixel_rays, transmittance
+from nerf.render import Samples, composite, march, pixel_rays, ray_points, transmittance
 from nerf.window import WindowData, depth_far_m, parallax_spread, window_scene
 
 
@@ -151,9 +151,10 @@ def fit_window(data: WindowData, cfg: NerfConfig, device: str = "cpu",
         o, d = _rays_for(model, poses, c2w0, k, frames, u.float() + 0.5, v.float() + 0.5,
                          pose_rays if pose_on else torch.zeros_like(pose_rays))
         s = march(o, d, edges, occ_fn, jitter=True, max_per_ray=cfg.max_samples_per_ray)
+        known = None
         if cfg.train_early_stop > 0:
-            s = visible_samples(model, o, d, s, cfg.train_early_stop)
-        sigma, col, _, _ = model.shade(o, d, s)
+            s, known = visible_samples(model, o, d, s, cfg.train_early_stop)
+        sigma, col, _, _ = model.shade(o, d, s, grid_features=known)
         rgb, depth_sum, left = composite(sigma, col, s)
         target = images[frames, v, u].float() / 255.0
         loss_c = torch.mean((rgb - target) ** 2)
@@ -235,13 +236,18 @@ def shift_cost(poses: PoseCorrection, idx: Tensor) -> Tensor:
 
 
 @torch.no_grad()
-def visible_samples(model: NerfModel, o: Tensor, d: Tensor, s: Samples, min_transmittance: float) -> Samples:
+def visible_samples(model: NerfModel, o: Tensor, d: Tensor, s: Samples, min_transmittance: float
+                    ) -> tuple[Samples, Tensor | None]:
     """The samples whose transmittance T_i (exclusive, from the current density, no gradients) is at least
-    `min_transmittance`: the ones a render with early termination would reach."""
-    x = o.detach()[s.ray_index] + d.detach()[s.ray_index] * s.t_mid[:, None]
-    sigma = model.field.density(model.scene.normalise(x))
+    `min_transmittance`: the ones a render with early termination would reach; and, for a field with a hash
+    grid, the grid's features at them (what model.shade(..., grid_features=) takes instead of encoding the
+    same points again), else None."""
+    xn = model.scene.normalise(ray_points(o.detach(), d.detach(), s, with_dirs=False)[0])
+    grid = getattr(model.field, "grid", None)
+    g = grid(xn) if grid is not None else None
+    sigma = model.field.density(xn) if g is None else model.field.density(xn, g)
     keep = transmittance(sigma, s.delta, s.ray_index, s.n_rays) >= min_transmittance
-    return Samples(s.ray_index[keep], s.t_mid[keep], s.delta[keep], s.n_rays)
+    return Samples(s.ray_index[keep], s.t_mid[keep], s.delta[keep], s.n_rays), None if g is None else g[keep]
 
 
 def register(model: NerfModel, poses: PoseCorrection, opt: torch.optim.Optimizer, c2w0: Tensor, k: Tensor,

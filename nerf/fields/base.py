@@ -2,7 +2,7 @@
 protocol), and the pieces fields are built from."""
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Protocol, runtime_checkable
+from typing import TYPE_CHECKING, Callable, Protocol, runtime_checkable
 
 import torch
 from torch import Tensor, nn
@@ -38,14 +38,34 @@ class Field(Protocol):
         """the parameters behind the features (a 'shared' panoptic phase trains them too)."""
         ...
 
-    def density(self, x: Tensor) -> Tensor:
-        """x [N, 3] -> sigma [N] (float32, >= 0, finite)."""
+    def density(self, x: Tensor, grid_features: Tensor | None = None) -> Tensor:
+        """x [N, 3] -> sigma [N] (float32, >= 0, finite); grid_features: grid(x) already computed (only a field
+        with a grid)."""
         ...
 
-    def __call__(self, x: Tensor, d: Tensor | None) -> tuple[Tensor, Tensor | None, Tensor]:
+    def __call__(self, x: Tensor, d: Tensor | None, colour_where: ColourWhere | None = None,
+                 grid_features: Tensor | None = None) -> tuple[Tensor, Tensor | None, Tensor]:
         """x [N, 3], unit directions d [N, 3] -> sigma [N], rgb [N, 3] in [0, 1], features [N, feature_dim];
-        d None: no colour (rgb None), for callers that need only density and features."""
+        d None: no colour (rgb None), for callers that need only density and features. colour_where: see
+        decode_colour; grid_features: grid(x) already computed without gradients (only a field with a grid)."""
         ...
+
+
+ColourWhere = Callable[[Tensor], Tensor]
+"""sigma [N] -> bool [N]: the samples whose colour a caller needs (decode_colour)."""
+
+
+def decode_colour(net: nn.Module, h: Tensor, d: Tensor, encode_dirs: Callable[[Tensor], Tensor], sigma: Tensor,
+                  where: ColourWhere | None = None) -> Tensor:
+    """rgb [N, 3] = sigmoid(net([h, encode_dirs(d)])) of the density decoder's outputs h [N, H] and the unit view
+    directions d [N, 3]. With `where`, only the samples where(sigma) selects go through the colour decoder and
+    the others get rgb 0: a render whose weights say a sample cannot show skips its decoder."""
+    if where is None:
+        return torch.sigmoid(net(torch.cat([h, encode_dirs(d)], -1)))
+    idx = torch.nonzero(where(sigma)).squeeze(1)
+    rgb = h.new_zeros(h.shape[0], 3, dtype=torch.float32)
+    rgb[idx] = torch.sigmoid(net(torch.cat([h[idx], encode_dirs(d[idx])], -1))).float()
+    return rgb
 
 
 CHUNK_ROWS = 4096

@@ -17,7 +17,7 @@ import torch
 from torch import Tensor, nn
 
 from nerf.config import NerfConfig
-from nerf.fields.base import MAX_LOG_DENSITY, mlp
+from nerf.fields.base import MAX_LOG_DENSITY, ColourWhere, decode_colour, mlp
 
 POS_FREQS = 10
 """frequencies of the position encoding (Semantic-NeRF / NeRF: 10)."""
@@ -35,6 +35,10 @@ def fourier(x: Tensor, n_freqs: int) -> Tensor:
     freqs = (2.0 ** torch.arange(n_freqs, device=x.device, dtype=torch.float32)) * math.pi  # [K]
     xb = x.float()[..., None] * freqs                                                       # [N, D, K]
     return torch.cat([x.float(), torch.sin(xb).flatten(1), torch.cos(xb).flatten(1)], -1)
+
+
+def _encode_dirs(d: Tensor) -> Tensor:
+    return fourier(d, DIR_FREQS)
 
 
 class MlpPeField(nn.Module):
@@ -65,13 +69,18 @@ class MlpPeField(nn.Module):
     def features(self, x: Tensor) -> Tensor:
         return self.trunk(fourier(x, POS_FREQS))
 
-    def density(self, x: Tensor) -> Tensor:
+    def density(self, x: Tensor, grid_features: None = None) -> Tensor:
+        if grid_features is not None:
+            raise ValueError("the mlp_pe field has no hash grid: grid_features must be None")
         return torch.exp(self.sigma_out(self.features(x))[:, 0].float().clamp(max=MAX_LOG_DENSITY))
 
-    def forward(self, x: Tensor, d: Tensor | None) -> tuple[Tensor, Tensor | None, Tensor]:
+    def forward(self, x: Tensor, d: Tensor | None, colour_where: ColourWhere | None = None,
+                grid_features: None = None) -> tuple[Tensor, Tensor | None, Tensor]:
         """x [N, 3] normalised positions, d [N, 3] unit directions -> sigma [N], rgb [N, 3], trunk features [N, W]
-        (d None: rgb None)."""
+        (d None: rgb None; colour_where: see decode_colour; no grid, so no grid_features)."""
+        if grid_features is not None:
+            raise ValueError("the mlp_pe field has no hash grid: grid_features must be None")
         h = self.features(x)
         sigma = torch.exp(self.sigma_out(h)[:, 0].float().clamp(max=MAX_LOG_DENSITY))
-        rgb = None if d is None else torch.sigmoid(self.color_net(torch.cat([h, fourier(d, DIR_FREQS)], -1)))
+        rgb = None if d is None else decode_colour(self.color_net, h, d, _encode_dirs, sigma, colour_where)
         return sigma, rgb, h

@@ -12,7 +12,7 @@ from torch import Tensor, nn
 
 from nerf.config import NerfConfig
 from nerf.encoding import PermutoEncoding
-from nerf.fields.base import MAX_LOG_DENSITY, mlp
+from nerf.fields.base import MAX_LOG_DENSITY, ColourWhere, decode_colour, mlp
 
 
 def sh_deg2(d: Tensor) -> Tensor:
@@ -49,15 +49,18 @@ class RadianceField(nn.Module):
         """The parameters behind g_c (a 'shared' panoptic phase trains them too)."""
         return [self.grid.table]
 
-    def density(self, x: Tensor) -> Tensor:
-        h = self.density_net(self.grid(x))
+    def density(self, x: Tensor, grid_features: Tensor | None = None) -> Tensor:
+        """x [N, 3] -> sigma [N]; grid_features: self.grid(x) where already computed."""
+        h = self.density_net(self.grid(x) if grid_features is None else grid_features)
         return torch.exp(h[:, 0].float().clamp(max=MAX_LOG_DENSITY))
 
-    def forward(self, x: Tensor, d: Tensor | None) -> tuple[Tensor, Tensor | None, Tensor]:
+    def forward(self, x: Tensor, d: Tensor | None, colour_where: ColourWhere | None = None,
+                grid_features: Tensor | None = None) -> tuple[Tensor, Tensor | None, Tensor]:
         """x [N, 3] normalised positions, d [N, 3] unit directions -> sigma [N], rgb [N, 3], g_c [N, L*F]
-        (d None: rgb None)."""
-        g = self.grid(x)
+        (d None: rgb None; colour_where: see decode_colour; grid_features: self.grid(x) from a no-grad call, given
+        back with gradients by the grid, PermutoEncoding.forward's `known`)."""
+        g = self.grid(x, known=grid_features)
         h = self.density_net(g)
         sigma = torch.exp(h[:, 0].float().clamp(max=MAX_LOG_DENSITY))
-        rgb = None if d is None else torch.sigmoid(self.color_net(torch.cat([h, sh_deg2(d)], -1)))
+        rgb = None if d is None else decode_colour(self.color_net, h, d, sh_deg2, sigma, colour_where)
         return sigma, rgb, g

@@ -10,7 +10,7 @@ from torch import Tensor
 from nerf.config import PanopticConfig
 from nerf.model import NerfModel
 from nerf.panoptic.heads import PanopticField, integrate_probs
-from nerf.render import Rounds, composite_weights, round_size
+from nerf.render import HeavySamples, Rounds, round_size
 
 
 def panoptic_field(model: NerfModel, cfg: PanopticConfig, n_slots: int) -> PanopticField:
@@ -72,11 +72,13 @@ def weighted_samples(model: NerfModel, o: Tensor, d: Tensor, min_weight: float, 
         first += per_ray
         if len(s) == 0:
             break
+        heavy = HeavySamples(s, trans[active])
         with torch.set_grad_enabled(keep_grad_features):
-            sigma, col, x, g = model.shade(o[active], d[active], s, colour)
+            sigma, col, x, g = model.shade(o[active], d[active], s, colour, colour_where=heavy if colour else None)
         with torch.no_grad():
-            w, left = composite_weights(sigma.detach(), s.delta, s.ray_index, s.n_rays)
-            w = w * trans[active][s.ray_index]
+            if heavy.weights is None:
+                heavy(sigma)
+            w, left = heavy.weights, heavy.left
             ray = active[s.ray_index]
             if colour:
                 rgb.index_add_(0, ray, w[:, None] * col.detach())

@@ -48,8 +48,8 @@ def test_non_finite_loss_names_the_step(window, monkeypatch):
 
     real = field_mod.RadianceField.forward
 
-    def poisoned(self, x, d):
-        sigma, rgb, g = real(self, x, d)
+    def poisoned(self, x, d, *args):
+        sigma, rgb, g = real(self, x, d, *args)
         return sigma, rgb * float("nan"), g
 
     monkeypatch.setattr(field_mod.RadianceField, "forward", poisoned)
