@@ -83,11 +83,28 @@ def depth_supervised(depths: Tensor, edge_m: float, far_m: float) -> Tensor:
     if edge_m <= 0:
         return ok
     for i in range(len(depths)):  # frame by frame: the pooled copies of a whole window would take gigabytes
-        d = torch.where(ok[i], depths[i], torch.zeros_like(depths[i]))[None, None]
-        hi = F.max_pool2d(d, 3, stride=1, padding=1)
-        lo = -F.max_pool2d(-d, 3, stride=1, padding=1)   # an invalid neighbour (0) makes the range large
-        ok[i] &= (hi - lo)[0, 0] <= edge_m
+        d = torch.where(ok[i], depths[i], torch.zeros_like(depths[i]))   # an invalid neighbour (0): a large range
+        ok[i] &= depth_range_3x3(d) <= edge_m
     return ok
+
+
+def depth_range_3x3(d: Tensor) -> Tensor:
+    """max - min of each pixel's 3x3 neighbourhood (within the image) of d [H, W] float32. On the CPU OpenCV's
+    dilate and erode (5x faster at 1280x720 than max pooling, the same values); elsewhere
+    depth_range_3x3_pooled."""
+    if d.device.type != "cpu":
+        return depth_range_3x3_pooled(d)
+    import cv2
+
+    a, k = d.contiguous().numpy(), np.ones((3, 3), np.uint8)
+    return torch.from_numpy(cv2.dilate(a, k) - cv2.erode(a, k))
+
+
+def depth_range_3x3_pooled(d: Tensor) -> Tensor:
+    """depth_range_3x3 by max pooling (any device): the reference of the CPU path."""
+    hi = F.max_pool2d(d[None, None], 3, stride=1, padding=1)
+    lo = -F.max_pool2d(-d[None, None], 3, stride=1, padding=1)
+    return (hi - lo)[0, 0]
 
 
 def _rays_for(model: NerfModel, poses: PoseCorrection, c2w0: Tensor, k: Tensor, frames: Tensor, u: Tensor, v: Tensor,

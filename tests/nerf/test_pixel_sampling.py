@@ -77,3 +77,19 @@ def test_block_cdf_draws_what_a_search_of_the_whole_sum_draws():
                        torch.searchsorted(whole, torch.rand(5000, generator=torch.Generator().manual_seed(1),
                                                             dtype=torch.float64) * whole[-1]).clamp_max(len(whole) - 1))
     assert cdf.block_end.numel() * CDF_BLOCK >= len(weights) and cdf.weights.dtype == torch.float32
+
+
+def test_the_gradient_magnitude_in_numpy_is_the_torch_one_bit_for_bit():
+    """gradient_cdf's CPU path (numpy, fewer temporaries) gives the same float32 bits as the torch reference,
+    so the edge rays a window draws do not depend on which ran; also on images of one or two rows."""
+    import numpy as np
+
+    from nerf.pixel_sampling import gradient_magnitude, gradient_magnitude_torch
+
+    g = np.random.default_rng(3)
+    for shape in [(72, 128, 3), (5, 7, 3), (1, 1, 3), (2, 9, 3), (6, 4, 1)]:
+        im = torch.from_numpy(g.integers(0, 256, shape, dtype=np.uint8))
+        fast, ref = gradient_magnitude(im), gradient_magnitude_torch(im)
+        assert fast.dtype == torch.float32 and fast.shape == shape[:2] and torch.equal(fast, ref)
+    flat = torch.full((4, 4, 3), 9, dtype=torch.uint8)
+    assert not gradient_magnitude(flat).any()

@@ -80,6 +80,23 @@ def test_depth_loss_skips_depth_edges_and_pixels_next_to_lost_depth():
     assert depth_supervised(d, 1.0, 3.5)[0, :, 3:5].all()         # a step below edge_m is no edge
 
 
+def test_the_depth_range_by_opencv_equals_max_pooling():
+    """depth_supervised's CPU path (dilate - erode) gives max pooling's values, border pixels and invalid (0)
+    neighbours included."""
+    import numpy as np
+
+    from nerf.trainer import depth_range_3x3, depth_range_3x3_pooled
+
+    g = np.random.default_rng(2)
+    for shape in [(72, 128), (5, 7), (1, 1), (2, 9)]:
+        d = torch.from_numpy((g.random(shape) * 4).astype(np.float32))
+        d[d < 0.6] = 0
+        assert torch.equal(depth_range_3x3(d), depth_range_3x3_pooled(d))
+    step = torch.zeros(3, 4)
+    step[:, 2:] = 1.0
+    assert depth_range_3x3(step).tolist() == [[0, 1, 1, 0]] * 3                # the border has no outside
+
+
 def test_edge_ray_share_fits(window):
     cfg = preset("cpu", **{**FAST, "steps": 30}, edge_ray_share=0.5, refine_poses=False)
     res = fit_window(window, cfg, render_val=False)
