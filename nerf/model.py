@@ -12,7 +12,7 @@ from nerf.config import NerfConfig, config_from_state
 from nerf.fields import Field, build_field
 from nerf.fields.base import ColourWhere
 from nerf.occupancy import OccupancyGrid
-from nerf.render import Rounds, Samples, composite, cone_steps, HeavySamples, pixel_rays, ray_points, round_size
+from nerf.render import HeavySamples, Rounds, Samples, composite, cone_steps, pixel_rays, ray_points, round_size
 from nerf.window import Scene
 
 
