@@ -69,9 +69,9 @@ class Config:
     (colour bilinear; depth and labels nearest, so no depth or label is invented between two surfaces); labelled frames
     too (docs/benchmarks.md: at full size they cost 4-16x and scored no better). 1 = full size (no resizing); 0 =
     automatic: the largest scale whose renders are at most RENDER_WIDTH (320, nerf/render_scale.py) pixels wide (1 up to
-    320x180, 0.5 at 640x360, 0.25 at 1280x720): a window renders every other frame of its span, so at 0.5 the renders of
-    a 1280x720 window cost about as much as its colour fit. Validation PSNR is measured at the scale each frame was
-    rendered at (the recorded image area-averaged to that size)."""
+    320x180, 0.5 at 640x360, 0.25 at 1280x720): a window renders every windows.val_every-th frame of its span.
+    Validation PSNR is measured at the scale each frame was rendered at (the recorded image area-averaged to that
+    size)."""
 
     def __post_init__(self) -> None:
         if not self.icp_max_depth_m >= 0:

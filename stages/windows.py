@@ -5,11 +5,12 @@ the whole row: a window next to an uncovered stretch is extended into it (at mos
 side), a longer stretch gets filler windows (no labelled centre), and neighbouring windows are made to
 share at least `min_overlap` frames, which panoptic_fusion aligns the windows on.
 
-Every other frame of the sequence is a validation frame, counted from the first window's centre, and
-every labelled (evaluation) frame is one too. A frame's role depends on the frame alone, so a frame
-shared by overlapping windows has the same role in all of them: no frame trains one window and validates its neighbour,
-and a shared validation frame is rendered by every window that holds it, so panoptic_fusion can take
-it from the window whose centre is nearest (where the fruits in it are best covered by training frames).
+Every `val_every`-th frame of the sequence is a validation frame (rendered, fused and scored), counted from
+the first window's centre, and every labelled (evaluation) frame is one too; the others train. A frame's
+role depends on the frame alone, so a frame shared by overlapping windows has the same role in all of them:
+no frame trains one window and validates its neighbour, and a shared validation frame is rendered by every
+window that holds it, so panoptic_fusion can take it from the window whose centre is nearest (where the
+fruits in it are best covered by training frames).
 """
 from __future__ import annotations
 
@@ -56,6 +57,10 @@ class Config:
     fruit entering or leaving the view in a window's first or last validation frames is otherwise seen by one
     or two of its training frames only, where the detector often misses it (cut by the image border). 0 =
     windows train on their own span only."""
+    val_every: int = 4
+    """frames, >= 2: every val_every-th frame validates (its renders are what panoptic_fusion, fruit_count and
+    evaluate read), the others train. At 15 frames a second and 0.2 m/s a near-row fruit stays in view for
+    about 60 frames, so 4 still fuses it from about 15 views; 2 renders twice as many and trains on a third fewer."""
     max_extend: int = 0
     """frames, >= 0, a window may grow by on each side to close a gap (cover_row; 0 = half_width); a longer gap
     gets as many filler windows as it needs beyond what its neighbours can grow into. A filler window costs a
@@ -66,6 +71,8 @@ class Config:
             raise ValueError(f"windows.half_width must be >= 1, got {self.half_width}")
         if self.max_windows < 0 or self.unlabelled_spacing < 0 or self.max_extend < 0:
             raise ValueError("windows.max_windows, windows.unlabelled_spacing and windows.max_extend must be >= 0")
+        if self.val_every < 2:
+            raise ValueError(f"windows.val_every must be >= 2 (a window needs training frames), got {self.val_every}")
         if self.context_frames < 0:
             raise ValueError(f"windows.context_frames must be >= 0, got {self.context_frames}")
         if self.min_overlap < 0 or self.grow_overlap < 0:
@@ -149,7 +156,7 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
     for w, (lo, hi, i) in enumerate(windows):
         for j in range(max(0, lo - cfg.context_frames), min(len(ids) - 1, hi + cfg.context_frames) + 1):
             off = j - i
-            val = (j - anchor) % 2 == 0 or j in labelled or (off == 0 and not from_labels)
+            val = (j - anchor) % cfg.val_every == 0 or j in labelled or (off == 0 and not from_labels)
             if not lo <= j <= hi:
                 if val:
                     continue            # context frames only train: the window's span is what it renders

@@ -24,7 +24,8 @@ from pipeline.runner import Runner
 
 SEQ = "synth_fm"
 TINY = ["synth.n_frames=16", "synth.width=128", "synth.height=72", "synth.n_labelled=3", "synth.supersample=1",
-        "synth.workers=1", "synth.write_bag=false", "synth.seed=4", "windows.half_width=5"]
+        "synth.workers=1", "synth.write_bag=false", "synth.seed=4", "windows.half_width=5",
+        "windows.val_every=2"]     # 16 frames: every other one fused, so each fruit is in several fused frames
 POSE_COLS = ["tx", "ty", "tz", "qx", "qy", "qz", "qw"]
 
 

@@ -16,7 +16,7 @@ def run(n, labelled, **cfg):
 
 
 def test_one_window_per_labelled_frame_clipped_with_alternating_split():
-    w, ctx = run(30, {2, 15}, half_width=5, cover_row=False)
+    w, ctx = run(30, {2, 15}, half_width=5, cover_row=False, val_every=2)
     assert sorted(w["window_id"].unique()) == [0, 1]
     w0 = w[w.window_id == 0]
     assert w0["frame_id"].tolist() == list(range(0, 8))      # clipped at the start
@@ -28,13 +28,26 @@ def test_one_window_per_labelled_frame_clipped_with_alternating_split():
 
 
 def test_shared_frames_have_one_role_in_every_window_and_centres_are_validation():
-    w, _ = run(40, {10, 17}, half_width=6, cover_row=False)  # centres of opposite parity, overlapping windows
+    w, _ = run(40, {10, 17}, half_width=6, cover_row=False, val_every=2)  # centres of opposite parity, overlapping
     roles = w.groupby("frame_id")["split"].nunique()
     assert (roles == 1).all()
     assert (w[w.is_center]["split"] == "val").all()
     w1 = w[w.window_id == 1].set_index("frame_id")["split"]
     assert w1.loc[17] == "val" and (w1.loc[[12, 14, 16, 18]] == "val").all() and (w1.loc[[13, 15, 19]] == "train").all()
     assert 0.4 <= (w1 == "train").mean() <= 0.6
+
+
+def test_every_val_every_th_frame_validates_and_labelled_frames_always_do():
+    w, _ = run(60, {10, 33}, half_width=8, cover_row=False, val_every=4)
+    roles = w.drop_duplicates("frame_id").set_index("frame_id")["split"]
+    val = set(roles[roles == "val"].index)
+    # counted from the first centre (10): 2, 6, 10, 14, 18 and 26, 30, 34, 38, plus the labelled 33
+    assert val == {2, 6, 10, 14, 18, 26, 30, 33, 34, 38} and (w.groupby("frame_id")["split"].nunique() == 1).all()
+    assert (w[w.is_center].split == "val").all()
+    default, _ = run(60, {10, 33}, half_width=8, cover_row=False)
+    assert (default.split == "val").sum() == (w.split == "val").sum()     # 4 is the default
+    with pytest.raises(ValueError, match="val_every must be >= 2"):
+        windows.Config(val_every=1)
 
 
 def test_overlap_is_recorded():
@@ -84,7 +97,7 @@ def test_cover_row_extends_windows_into_short_gaps_and_fills_long_ones():
     assert small.summary["filler_windows"] == 4 and small.summary["frames_in_no_window"] == 0
     roles = w.groupby("frame_id")["split"].nunique()
     assert (roles == 1).all() and (w[w.frame_id.isin([60, 120, 179])].split == "val").all()
-    assert 0.45 <= (w.drop_duplicates("frame_id").split == "train").mean() <= 0.55
+    assert 0.7 <= (w.drop_duplicates("frame_id").split == "train").mean() <= 0.8   # val_every 4
     assert "filler window" in " ".join(ctx.summary["notes"])
 
 
@@ -124,8 +137,8 @@ def test_cover_row_is_off_with_max_windows_and_paper_windows_leave_gaps():
 
 
 def test_context_frames_only_train_and_keep_every_frame_in_one_role():
-    plain, _ = run(120, {30, 60, 89}, half_width=20)
-    w, ctx = run(120, {30, 60, 89}, half_width=20, context_frames=4)
+    plain, _ = run(120, {30, 60, 89}, half_width=20, val_every=2)
+    w, ctx = run(120, {30, 60, 89}, half_width=20, context_frames=4, val_every=2)
     for wid, g in w.groupby("window_id"):
         own = plain[plain.window_id == wid]
         extra = g[~g.frame_id.isin(own.frame_id)]
