@@ -9,8 +9,8 @@ SCHEMA = table_schema(
     "each side (clipped at the sequence ends); with windows.cover_row (default) windows next to frames in no "
     "window grow into them and filler windows (no labelled centre) cover longer stretches, so every frame is "
     "in a window and neighbours share frames. Every windows.val_every-th frame validates (counted from the "
-    "first centre), the rest train; labelled frames always "
-    "validate. A frame has the same split in every window.",
+    "first centre), the rest train; labelled frames always validate. A frame has the same split in every "
+    "window.",
     col("window_id", pa.int32(), "window index, from 0, in order of the centre frame"),
     col("frame_id", pa.int32(), "frame (frames.frame_id)"),
     col("center_frame_id", pa.int32(), "the frame the window is centred on (labelled, except for filler windows)"),
