@@ -106,28 +106,34 @@ def fused_label(frame: Frame, models: FruitModels, owners: dict, cfg: Config) ->
     return out, ev, ids
 
 
+def by_key(keys: np.ndarray, rows: np.ndarray) -> list[tuple[int, np.ndarray]]:
+    """(key, its rows in their order) per distinct key of `keys` [N], ascending: rows [N, ...] grouped in one
+    sort (a mask per key would scan all N rows once per key)."""
+    order = np.argsort(keys, kind="stable")
+    found, starts = np.unique(keys[order], return_index=True)
+    return list(zip(found.tolist(), np.split(rows[order], starts[1:]))) if len(found) else []
+
+
 def round_views(frame: Frame, models: FruitModels, owners: dict, cfg: Config) -> tuple[list, list]:
     """What one frame gives the refit: [(fruit, its pixels' points)] and [(fruit, (frame, segment, pixels,
     centre [3], points, camera centre [3]))] of the detector segments lying mostly on fruits, each given to the
     fruit holding most of it (at least min_group_px of its pixels)."""
     _, ev, ids = fused_label(frame, models, owners, cfg)
     grown, segs, taken = [], [], set()
-    for f in np.unique(ids[ids > 0]):
-        pts = ev.points[ids == f]
+    for f, pts in by_key(ids[ids > 0], ev.points[ids > 0]):
         grown.append((int(f), pts[subsample(len(pts), MAX_POINTS)]))
     if cfg.detector_split_m <= 0:
         return grown, segs
     on = (ids > 0) & (ev.segment > 0)
     size = np.bincount(ev.segment, minlength=1)
     covered = np.bincount(ev.segment[on], minlength=len(size))
-    keys, inverse, n = np.unique(ids[on] * len(size) + ev.segment[on], return_inverse=True, return_counts=True)
+    pairs = by_key(ids[on] * len(size) + ev.segment[on], ev.points[on])
     min_px = min_group_px(frame.label.shape)
-    for j in np.argsort(-n, kind="stable"):
-        f, s = divmod(int(keys[j]), len(size))
-        if n[j] >= min_px and 2 * covered[s] > size[s] and s not in taken:
+    for key, pts in sorted(pairs, key=lambda kp: -len(kp[1])):
+        f, s = divmod(int(key), len(size))
+        if len(pts) >= min_px and 2 * covered[s] > size[s] and s not in taken:
             taken.add(s)
-            pts = ev.points[on][inverse == j]
-            segs.append((f, (frame.frame_id, s, int(n[j]), robust_centre(pts)[0], pts[:: max(1, len(pts) // 400)],
+            segs.append((f, (frame.frame_id, s, len(pts), robust_centre(pts)[0], pts[:: max(1, len(pts) // 400)],
                              frame.c2w[:3, 3])))
     return grown, segs
 

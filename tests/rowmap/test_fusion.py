@@ -261,3 +261,15 @@ def test_a_frame_assigned_in_tiles_gets_the_ids_of_every_pixel_against_every_can
     assert (ids[in_blob] == far + 1).any()                     # the far fruit wins pixels outside its halo box
     assert (ev_tiled.pixels == ev.pixels).all() and len(np.unique(ids)) > 8
     np.testing.assert_array_equal(ids, every_pair)
+
+
+def test_by_key_gives_each_keys_rows_in_their_order_as_a_mask_per_key_does():
+    from rowmap.fusion.assignment import by_key
+
+    rng = np.random.default_rng(3)
+    keys, rows = rng.integers(0, 7, 500), rng.normal(size=(500, 3))
+    groups = by_key(keys, rows)
+    assert [k for k, _ in groups] == sorted(set(keys.tolist()))
+    for k, got in groups:
+        np.testing.assert_array_equal(got, rows[keys == k])
+    assert by_key(keys[:0], rows[:0]) == []
