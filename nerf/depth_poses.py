@@ -97,7 +97,7 @@ def depth_cloud(depth_m: np.ndarray, k: np.ndarray, max_depth_m: float, voxel_m:
     mean point of each voxel of voxel_m, normals from the neighbours within 5 voxel_m (at most 30): an
     Open3D PointCloud or, with the numpy backend (icp_backend), a Cloud."""
     v, u = np.nonzero((depth_m > 0) & (depth_m <= max_depth_m) & np.isfinite(depth_m))
-    pts = unproject(depth_m, k, np.eye(4), v, u)
+    pts = unproject(depth_m, k, None, v, u)
     if icp_backend() == "numpy":
         return numpy_cloud(pts, voxel_m)
     import open3d as o3d

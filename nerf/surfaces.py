@@ -6,14 +6,16 @@ import numpy as np
 from scipy.optimize import least_squares
 
 
-def unproject(depth_m: np.ndarray, k: np.ndarray, c2w: np.ndarray, v: np.ndarray, u: np.ndarray) -> np.ndarray:
+def unproject(depth_m: np.ndarray, k: np.ndarray, c2w: np.ndarray | None, v: np.ndarray, u: np.ndarray
+              ) -> np.ndarray:
     """World points [N, 3] of pixels (row v, column u) with z-depth `depth_m[v, u]` (pixel centres at
-    half-integers, OpenCV camera: x right, y down, z forward). k = (fx, fy, cx, cy), c2w [4, 4]."""
+    half-integers, OpenCV camera: x right, y down, z forward). k = (fx, fy, cx, cy), c2w [4, 4]; None: the
+    points in the camera frame."""
     z = depth_m[v, u].astype(np.float64)
     x = (u + 0.5 - k[2]) / k[0] * z
     y = (v + 0.5 - k[3]) / k[1] * z
     cam = np.stack([x, y, z], 1)                         # [N, 3]
-    return cam @ c2w[:3, :3].T + c2w[:3, 3]
+    return cam if c2w is None else cam @ c2w[:3, :3].T + c2w[:3, 3]
 
 
 def runs_by_key(v: np.ndarray, u: np.ndarray, key: np.ndarray

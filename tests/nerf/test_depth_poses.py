@@ -175,3 +175,16 @@ def test_depth_initial_poses_modes():
     assert info["depth_pose_votes"] == 31
     with pytest.raises(ValueError, match="modes"):
         depth_initial_poses("lidar", depths, intr, odo)
+
+
+def test_unproject_without_a_pose_gives_the_camera_frame_points_of_the_identity_pose():
+    from nerf.surfaces import unproject
+
+    rng = np.random.default_rng(5)
+    depth = rng.uniform(0.2, 3.0, (12, 16))
+    v, u = np.nonzero(depth > 1.0)
+    k = np.array([20.0, 21.0, 8.2, 5.9])
+    cam = unproject(depth, k, None, v, u)
+    np.testing.assert_array_equal(cam, unproject(depth, k, np.eye(4), v, u))
+    np.testing.assert_allclose(cam[:, 2], depth[v, u])
+    np.testing.assert_allclose(cam[:, 0], (u + 0.5 - k[2]) / k[0] * depth[v, u])
