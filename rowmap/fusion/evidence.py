@@ -71,8 +71,9 @@ def frame_evidence(frame: Frame, models: FruitModels, owners: dict[tuple[int, in
 def pixel_evidence(frame: Frame, models: FruitModels, owners: dict[tuple[int, int], int], cfg: Config) -> Evidence:
     """The evidence of one frame but the fruit models' distances. Candidates: the fruits the render paints and
     those whose halo is in view. A detector segment's fruit: `owners` ((frame, segment) -> fruit, from a split),
-    else the fruit the render paints on most of it. The render's confidence is BORDER_CONFIDENCE in the border
-    band, else 1."""
+    else the fruit the render paints on most of it, unless it paints more of it as background: then none (the
+    segment says some fruit is there; the fruit models say which). The render's confidence is BORDER_CONFIDENCE
+    in the border band, else 1."""
     h, w = frame.label.shape
     boxes = models.in_view((h, w), frame.k, frame.c2w, cfg)
     ids = np.array(sorted(set(np.unique(frame.label[frame.label > 0]).tolist()) | set(boxes)), np.int64)
@@ -86,8 +87,8 @@ def pixel_evidence(frame: Frame, models: FruitModels, owners: dict[tuple[int, in
         keep[bv[near] + v0, bu[near] + u0] = True
     v, u = np.nonzero(keep)
     points = unproject(frame.depth, frame.k, frame.c2w, v, u)
-    on, n_lab = (frame.label > 0) & (seg > 0), int(frame.label.max()) + 1
-    owner = np.zeros(int(seg.max()) + 1, np.int64)   # segment -> the fruit painted on most of it (0: none)
+    on, n_lab = (frame.label >= 0) & (seg > 0), int(frame.label.max()) + 1
+    owner = np.zeros(int(seg.max()) + 1, np.int64)   # segment -> what is painted on most of it (0: background)
     if on.any():
         keys, n = np.unique(seg[on] * n_lab + frame.label[on], return_counts=True)
         order = np.argsort(n, kind="stable")   # the largest pair of each segment written last

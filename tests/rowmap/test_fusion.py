@@ -273,3 +273,22 @@ def test_by_key_gives_each_keys_rows_in_their_order_as_a_mask_per_key_does():
     for k, got in groups:
         np.testing.assert_array_equal(got, rows[keys == k])
     assert by_key(keys[:0], rows[:0]) == []
+
+
+def test_a_detector_segment_the_render_paints_mostly_as_background_names_no_fruit_of_its_own():
+    # fruit 2 enters at the left edge: the render paints its sliver as leaf but for a few pixels of fruit 1
+    centres = [np.array([0.0, 0.0, 0.5]), np.array([-0.135, 0.0, 0.5])]
+    depth, who = scene(centres)
+    sliver = who == 1
+    label = np.where(who == 0, 1, 0)
+    sv, su = np.nonzero(sliver)
+    label[sv[:3], su[:3]] = 1
+    segments = np.where(sliver, 5, 0) + np.where(who == 0, 6, 0)
+    cfg = Config()
+    models = FruitModels({i + 1: model(c, cfg) for i, c in enumerate(centres)})
+    frame = Frame(frame_id=0, label=label, depth=depth, segments=segments, k=K, c2w=np.eye(4))
+    ev = frame_evidence(frame=frame, models=models, owners={}, cfg=cfg)
+    option_of_1 = int(np.flatnonzero(ev.ids == 1)[0]) + 1
+    assert (ev.detector[ev.segment == 5] == 0).all()             # some fruit, which one the models decide
+    assert (ev.detector[ev.segment == 6] == option_of_1).all()   # painted mostly as fruit 1: fruit 1's
+    assert (fused_label(frame=frame, models=models, owners={}, cfg=cfg)[0][sliver] == 2).mean() > 0.8
