@@ -688,8 +688,10 @@ def test_evaluate_is_perfect_on_perfect_input(perfect_row):
         assert metric(ev, w, "psnr") == pytest.approx(25 + int(w[-3:]))
     for k in ("id_consistency", "fruit_recall", "fruit_precision", "class_accuracy"):
         assert metric(ev, "row", k) == pytest.approx(1.0), k
-    # fusion voids slots of a few pixels, and gives a fruit detector pixels just past its painted outline
-    assert 0.985 < metric(ev, "row", "pq") < 1 and metric(ev, "row", "miou") > 0.99
+    # fusion voids slots of a few pixels, and gives a fruit detector pixels just past its painted outline (a
+    # segment painted mostly as background says some fruit is there: leaf pixels on a fruit's surface inside it
+    # can go to the fruit; .988 before that, .984 with it)
+    assert 0.98 < metric(ev, "row", "pq") < 1 and metric(ev, "row", "miou") > 0.99
     assert metric(ev, "row", "count_error_rel") == 0 and metric(ev, "row", "count_gt") > 0
     assert metric(ev, "row", "diameter_mae_m") < 0.012 and metric(ev, "row", "diameter_median_abs_err_m") < 0.01
     assert metric(ev, "row", "diameter_mae_m") < metric(ev, "row", "diameter_sphere_mae_m")
