@@ -13,7 +13,7 @@ from collections.abc import Callable, Iterable, Iterator
 import numpy as np
 
 from nerf.config import BASE_PIXELS
-from nerf.surfaces import robust_centre
+from nerf.surfaces import robust_centre, runs_by_key
 from pipeline.parallel import available_cores, in_order
 from rowmap.fusion.association import MAX_POINTS, min_group_px
 from rowmap.fusion.evidence import Evidence, Frame, pixel_evidence
@@ -106,34 +106,31 @@ def fused_label(frame: Frame, models: FruitModels, owners: dict, cfg: Config) ->
     return out, ev, ids
 
 
-def by_key(keys: np.ndarray, rows: np.ndarray) -> list[tuple[int, np.ndarray]]:
-    """(key, its rows in their order) per distinct key of `keys` [N], ascending: rows [N, ...] grouped in one
-    sort (a mask per key would scan all N rows once per key)."""
-    order = np.argsort(keys, kind="stable")
-    found, starts = np.unique(keys[order], return_index=True)
-    return list(zip(found.tolist(), np.split(rows[order], starts[1:]))) if len(found) else []
-
-
 def round_views(frame: Frame, models: FruitModels, owners: dict, cfg: Config) -> tuple[list, list]:
     """What one frame gives the refit: [(fruit, its pixels' points)] and [(fruit, (frame, segment, pixels,
     centre [3], points, camera centre [3]))] of the detector segments lying mostly on fruits, each given to the
     fruit holding most of it (at least min_group_px of its pixels)."""
     _, ev, ids = fused_label(frame, models, owners, cfg)
     grown, segs, taken = [], [], set()
-    for f, pts in by_key(ids[ids > 0], ev.points[ids > 0]):
+    fruit_px = np.flatnonzero(ids > 0)
+    rows, _, fruit, starts, ends = runs_by_key(fruit_px, fruit_px, ids[fruit_px])   # evidence rows per fruit
+    for f, s0, s1 in zip(fruit[starts], starts, ends):
+        pts = ev.points[rows[s0:s1]]
         grown.append((int(f), pts[subsample(len(pts), MAX_POINTS)]))
     if cfg.detector_split_m <= 0:
         return grown, segs
-    on = (ids > 0) & (ev.segment > 0)
+    on = np.flatnonzero((ids > 0) & (ev.segment > 0))
     size = np.bincount(ev.segment, minlength=1)
     covered = np.bincount(ev.segment[on], minlength=len(size))
-    pairs = by_key(ids[on] * len(size) + ev.segment[on], ev.points[on])
+    rows, _, key, starts, ends = runs_by_key(on, on, ids[on] * len(size) + ev.segment[on])   # per (fruit, segment)
     min_px = min_group_px(frame.label.shape)
-    for key, pts in sorted(pairs, key=lambda kp: -len(kp[1])):
-        f, s = divmod(int(key), len(size))
-        if len(pts) >= min_px and 2 * covered[s] > size[s] and s not in taken:
+    for j in np.argsort(starts - ends, kind="stable"):   # most pixels first
+        f, s = divmod(int(key[starts[j]]), len(size))
+        n = int(ends[j] - starts[j])
+        if n >= min_px and 2 * covered[s] > size[s] and s not in taken:
             taken.add(s)
-            segs.append((f, (frame.frame_id, s, len(pts), robust_centre(pts)[0], pts[:: max(1, len(pts) // 400)],
+            pts = ev.points[rows[starts[j]:ends[j]]]
+            segs.append((f, (frame.frame_id, s, n, robust_centre(pts)[0], pts[:: max(1, len(pts) // 400)],
                              frame.c2w[:3, 3])))
     return grown, segs
 

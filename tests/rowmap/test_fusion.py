@@ -263,18 +263,6 @@ def test_a_frame_assigned_in_tiles_gets_the_ids_of_every_pixel_against_every_can
     np.testing.assert_array_equal(ids, every_pair)
 
 
-def test_by_key_gives_each_keys_rows_in_their_order_as_a_mask_per_key_does():
-    from rowmap.fusion.assignment import by_key
-
-    rng = np.random.default_rng(3)
-    keys, rows = rng.integers(0, 7, 500), rng.normal(size=(500, 3))
-    groups = by_key(keys, rows)
-    assert [k for k, _ in groups] == sorted(set(keys.tolist()))
-    for k, got in groups:
-        np.testing.assert_array_equal(got, rows[keys == k])
-    assert by_key(keys[:0], rows[:0]) == []
-
-
 def test_a_detector_segment_the_render_paints_mostly_as_background_names_no_fruit_of_its_own():
     # fruit 2 enters at the left edge: the render paints its sliver as leaf but for a few pixels of fruit 1
     centres = [np.array([0.0, 0.0, 0.5]), np.array([-0.135, 0.0, 0.5])]
