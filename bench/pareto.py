@@ -71,6 +71,7 @@ STAGE_POINTS = [
     ("decoders' rate 2e-2", "", dict(lr_mlp=2e-2)),
     ("rates 3e-2 / 2e-2", "", dict(lr_grid=3e-2, lr_mlp=2e-2)),
     ("2^18 table, rates 3e-2 / 2e-2", "", dict(log2_capacity=18, lr_grid=3e-2, lr_mlp=2e-2)),
+    ("decoders 64 wide", "", dict(hidden=64)),
 ]
 """--stage: nerf_fit's own settings (model, steps, ICP poses, working-scale renders) and cheaper variants."""
 MODES = {"quick": dict(colour_steps=100, panoptic_steps=80, val_frames=3),

@@ -44,8 +44,9 @@ class NerfConfig:
     resolve; finer than the pixel footprint at the working distance adds collisions, not detail."""
     coarsest_res_m: float = 0.5
     """coarsest lattice scale, metres: about the size of the largest structures of the scene."""
-    hidden: int = 64
-    """width of the hidden layers of the density, colour and panoptic decoders (16-256)."""
+    hidden: int = 32
+    """width of the hidden layers of the density, colour and panoptic decoders (16-256). 32 on the CPU (the
+    decoders are a third of a training step there); the GPU presets S and L keep 64."""
     field_kind: FieldKind = "permuto"
     """radiance field: 'permuto' (permutohedral hash grid + small decoders, nerf/fields/permuto.py) or
     'mlp_pe' (the Semantic-NeRF-like baseline: an MLP on a Fourier encoding, nerf/fields/mlp_pe.py)."""
@@ -166,9 +167,9 @@ class NerfConfig:
 PRESETS: dict[str, dict] = {
     "cpu": {},
     "S": dict(n_levels=9, n_features=2, log2_capacity=15, log2_capacity_delta=9, finest_res_m=0.003, steps=3000,
-              rays_per_step=2048),
+              rays_per_step=2048, hidden=64),
     "L": dict(n_levels=21, n_features=2, log2_capacity=18, log2_capacity_delta=18, finest_res_m=0.001, steps=6000,
-              rays_per_step=4096),
+              rays_per_step=4096, hidden=64),
 }
 
 

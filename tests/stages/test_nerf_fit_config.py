@@ -56,3 +56,23 @@ def test_render_scale_outside_0_1_is_refused(bad):
 
 def test_render_scale_is_automatic_by_default():
     assert nerf_fit.Config().render_scale == 0
+
+
+@pytest.mark.parametrize("name,width", [("cpu", 32), ("S", 64), ("L", 64)])
+def test_every_decoder_takes_the_presets_hidden_width(name, width):
+    """The cpu preset's decoders are 32 wide (a third of a CPU training step is in them), the GPU presets keep
+    64; the width reaches the density and colour decoders and the panoptic heads alike."""
+    from types import SimpleNamespace
+
+    import torch
+
+    from nerf.config import PanopticConfig
+    from nerf.fields.permuto import RadianceField
+    from nerf.panoptic.samples import panoptic_field
+
+    cfg = preset(name, log2_capacity=10, log2_capacity_delta=8)
+    field = RadianceField(cfg, scene_scale_m=1.0)
+    heads = panoptic_field(SimpleNamespace(cfg=cfg, field=field), PanopticConfig(), n_slots=4)
+    nets = (field.density_net, field.color_net, heads.semantic, heads.instance)
+    hidden = [m.out_features for net in nets for m in list(net)[:-1] if isinstance(m, torch.nn.Linear)]
+    assert cfg.hidden == width and hidden == [width] * 7    # 1 + 1 + 2 + 3 hidden layers
