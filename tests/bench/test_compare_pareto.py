@@ -99,7 +99,7 @@ def test_stage_points_vary_only_the_cost_and_rates_of_nerf_fit_settings():
     from nerf.config import NerfConfig
 
     assert STAGE_POINTS[0][2] == {} and MODES["stage"]["val_frames"] == 0    # the reference: the stage unchanged
-    knobs = {"steps_factor", "step_factor", "train_early_stop", "lr_grid", "lr_mlp", "log2_capacity"}
+    knobs = {"steps_factor", "step_factor", "train_early_stop", "lr_grid", "lr_mlp", "log2_capacity", "hidden"}
     for _, preset_name, change in STAGE_POINTS[1:]:
         assert preset_name == "" and change and set(change) <= knobs
         fields = {k: v for k, v in change.items() if k in NerfConfig.__dataclass_fields__}

@@ -26,11 +26,13 @@ def test_each_render_skip_evaluates_fewer_samples_and_keeps_the_image():
     # a 40-step model of a 40 x 24 scene (PSNR about 11 dB): with 2 features and uniform batches its renders
     # with and without skipping differ by 0.7 dB, with the cpu preset's 4 features and edge rays by 1.3 dB
     # (floaters in cells the grid calls empty), and with the cpu preset's light depth loss (0.02, sized for
-    # 1200 steps) by 1.0 dB; the skips are measured on the default row by `pag bench render`. The marching step
-    # is three pixel footprints, as the default cone angle is on a 320 px wide image
+    # 1200 steps) by 1.0 dB, with the cpu preset's 32-wide decoders by 2.1 dB; the skips are measured on the
+    # default row by `pag bench render`. The marching step is three pixel footprints, as the default cone angle
+    # is on a 320 px wide image
     cone = 3.0 / float(np.mean(data.intrinsics[:, 0]))
     res = fit_window(data, preset("cpu", steps=40, rays_per_step=256, n_levels=6, n_features=2, log2_capacity=12,
-                                  edge_ray_share=0.0, refine_poses=False, depth_loss_weight=0.1, cone_angle=cone),
+                                  edge_ray_share=0.0, refine_poses=False, depth_loss_weight=0.1, cone_angle=cone,
+                                  hidden=64),
                      render_val=False)
     model = res.model
     r = _render_modes(model, data, repeats=1)
