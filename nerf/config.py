@@ -45,8 +45,8 @@ class NerfConfig:
     coarsest_res_m: float = 0.5
     """coarsest lattice scale, metres: about the size of the largest structures of the scene."""
     hidden: int = 32
-    """width of the hidden layers of the density, colour and panoptic decoders (16-256). 32 on the CPU (the
-    decoders are a third of a training step there); the GPU presets S and L keep 64."""
+    """width of the hidden layers of the density and colour decoders (16-256). 32 on the CPU (the decoders are
+    a third of a training step there); the GPU presets S and L keep 64. The panoptic heads: PanopticConfig.hidden."""
     field_kind: FieldKind = "permuto"
     """radiance field: 'permuto' (permutohedral hash grid + small decoders, nerf/fields/permuto.py) or
     'mlp_pe' (the Semantic-NeRF-like baseline: an MLP on a Fourier encoding, nerf/fields/mlp_pe.py)."""
@@ -189,6 +189,9 @@ class PanopticConfig:
     """training frames per step (>= 1; each frame's segments are assigned to slots on their own)."""
     rays_per_frame: int = 384
     """rays per frame and step (>= 1)."""
+    hidden: int = 64
+    """width of the semantic and instance heads' hidden layers (16-256): the instance head tells up to a hundred
+    slots apart, and 32 wide its windows' ids were less consistent (docs/benchmarks.md)."""
     thing_ray_share: float = 0.5
     """share (0-1) of a frame's rays drawn from its thing (fruit) segments, so small fruits are not starved;
     importance weights keep the semantic loss unbiased."""

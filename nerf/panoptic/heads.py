@@ -4,7 +4,7 @@
     g_p(x) = g_c(x)                                  (mode "shared": one grid, panoptic losses reach it)
     g_p(x) = G_p(x), an independent full-size grid   (mode "independent")
 
-The semantic head (2 hidden layers of NerfConfig.hidden units) gives logits over D classes, the instance
+The semantic head (2 hidden layers of PanopticConfig.hidden units) gives logits over D classes, the instance
 head (3 hidden layers) logits over N slots (slot 0 = stuff). Logits become probabilities per SAMPLE (softmax
 before integration) and are integrated along each ray with the colour weights detached, so the
 panoptic losses can move neither density nor camera poses.

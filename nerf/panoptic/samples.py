@@ -23,10 +23,10 @@ def panoptic_field(model: NerfModel, cfg: PanopticConfig, n_slots: int) -> Panop
             raise ValueError(f"the {mc.field_kind} field has no hash grid: panoptic grid_mode must be 'shared', got "
                              f"{cfg.grid_mode!r}")
         return PanopticField(1, model.field.feature_dim, 1, 1.0, 1.0, cfg.n_classes, n_slots, mode="shared",
-                             hidden=mc.hidden)
+                             hidden=cfg.hidden)
     cap = mc.log2_capacity_delta if cfg.grid_mode == "delta" else mc.log2_capacity
     return PanopticField(mc.n_levels, mc.n_features, cap, float(enc.scales[0]), float(enc.scales[-1]), cfg.n_classes,
-                         n_slots, mode=cfg.grid_mode, hidden=mc.hidden, seed=mc.seed + 1)
+                         n_slots, mode=cfg.grid_mode, hidden=cfg.hidden, seed=mc.seed + 1)
 
 
 @dataclass

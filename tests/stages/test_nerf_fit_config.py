@@ -59,9 +59,9 @@ def test_render_scale_is_automatic_by_default():
 
 
 @pytest.mark.parametrize("name,width", [("cpu", 32), ("S", 64), ("L", 64)])
-def test_every_decoder_takes_the_presets_hidden_width(name, width):
-    """The cpu preset's decoders are 32 wide (a third of a CPU training step is in them), the GPU presets keep
-    64; the width reaches the density and colour decoders and the panoptic heads alike."""
+def test_the_decoders_take_the_presets_width_and_the_heads_their_own(name, width):
+    """The cpu preset's density and colour decoders are 32 wide (a third of a CPU training step is in them),
+    the GPU presets keep 64; the panoptic heads take nerf_fit.panoptic.hidden at every preset."""
     from types import SimpleNamespace
 
     import torch
@@ -70,9 +70,13 @@ def test_every_decoder_takes_the_presets_hidden_width(name, width):
     from nerf.fields.permuto import RadianceField
     from nerf.panoptic.samples import panoptic_field
 
+    def widths(*nets) -> list[int]:
+        return [m.out_features for net in nets for m in list(net)[:-1] if isinstance(m, torch.nn.Linear)]
+
     cfg = preset(name, log2_capacity=10, log2_capacity_delta=8)
     field = RadianceField(cfg, scene_scale_m=1.0)
-    heads = panoptic_field(SimpleNamespace(cfg=cfg, field=field), PanopticConfig(), n_slots=4)
-    nets = (field.density_net, field.color_net, heads.semantic, heads.instance)
-    hidden = [m.out_features for net in nets for m in list(net)[:-1] if isinstance(m, torch.nn.Linear)]
-    assert cfg.hidden == width and hidden == [width] * 7    # 1 + 1 + 2 + 3 hidden layers
+    assert widths(field.density_net, field.color_net) == [width] * 2
+    for head_width in (PanopticConfig().hidden, 48):
+        heads = panoptic_field(SimpleNamespace(cfg=cfg, field=field), PanopticConfig(hidden=head_width), n_slots=4)
+        assert widths(heads.semantic, heads.instance) == [head_width] * 5    # 2 + 3 hidden layers
+    assert resolved("nerf_fit.panoptic.hidden=48").panoptic.hidden == 48
