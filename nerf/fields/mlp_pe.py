@@ -5,9 +5,10 @@
     h = trunk(gamma(x))                                          TRUNK_LAYERS x TRUNK_WIDTH, ReLU
     sigma = exp(min(w_sigma . h, 15)),  rgb = sigmoid(C([h, gamma(d)]))
 
-Differences from the paper, all for CPU time: a trunk of 4 x 128 instead of 8 x 256 and no hierarchical
-sampling (it uses the occupancy-grid marching like every model). Its semantic head reads the trunk's
-features (panoptic grid_mode 'shared'); nerf/baselines.py holds the baseline's panoptic settings.
+Differences from the paper, all for CPU time: a trunk of 4 x 128 instead of 8 x 256, a colour head 64 wide
+instead of 128 and no hierarchical sampling (it uses the occupancy-grid marching like every model). Its
+semantic head reads the trunk's features (panoptic grid_mode 'shared'); nerf/baselines.py holds the
+baseline's panoptic settings.
 """
 from __future__ import annotations
 
@@ -27,6 +28,9 @@ TRUNK_LAYERS = 4
 """hidden layers of the trunk (NeRF: 8)."""
 TRUNK_WIDTH = 128
 """width of the trunk (NeRF: 256)."""
+COLOUR_WIDTH = 64
+"""width of the colour head's hidden layer (NeRF: 128); the baseline's own, not NerfConfig.hidden, so the
+baseline stays the same model whatever width a preset gives our decoders."""
 
 
 def fourier(x: Tensor, n_freqs: int) -> Tensor:
@@ -52,7 +56,7 @@ class MlpPeField(nn.Module):
         self.trunk = nn.Sequential(*mlp(3 * (1 + 2 * POS_FREQS), TRUNK_WIDTH, TRUNK_LAYERS - 1, TRUNK_WIDTH),
                                    nn.ReLU(inplace=True))
         self.sigma_out = nn.Linear(TRUNK_WIDTH, 1)
-        self.color_net = mlp(TRUNK_WIDTH + 3 * (1 + 2 * DIR_FREQS), cfg.hidden, 1, 3)
+        self.color_net = mlp(TRUNK_WIDTH + 3 * (1 + 2 * DIR_FREQS), COLOUR_WIDTH, 1, 3)
 
     @property
     def feature_dim(self) -> int:

@@ -52,6 +52,15 @@ def test_build_field_picks_the_kind_and_names_the_choices():
         build_field(replace(cfg, field_kind="voxels"), 1.0)  # type: ignore[arg-type]
 
 
+def test_the_baseline_field_does_not_follow_our_decoders_width():
+    def n_params(hidden: int) -> int:
+        return sum(p.numel() for p in build_field(preset("cpu", field_kind="mlp_pe", hidden=hidden), 1.0).parameters())
+
+    ours = [sum(p.numel() for p in build_field(preset("cpu", hidden=h), 1.0).parameters()) for h in (32, 64)]
+    assert ours[0] < ours[1]   # the width reaches our decoders ...
+    assert n_params(32) == n_params(64)   # ... and not the baseline's colour head
+
+
 def test_mlp_baseline_trains_and_renders_finite(mlp_fit):
     data, _, _, res = mlp_fit
     assert isinstance(res.model.field, MlpPeField)
