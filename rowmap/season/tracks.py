@@ -11,8 +11,9 @@ date and seen again is neither harvested nor set:
   seen had it been there), unless the track is lost after that one observation;
 - `harvested`: a row on the date after a track's last observation when the fruit lies inside that date's
   stretch (diameter, class and fruit_id null: the fruit is gone), unless the track is lost: it ended before
-  its fruit was ever seen as ripe as PICKED_FROM (mixed), and growers pick ripe fruits, so a green track that
-  ends was a false fruit or a fruit the later dates miss;
+  its fruit was ever seen as ripe as PICKED_FROM (mixed) and the next date came sooner than ripen_days after its
+  last sighting; growers pick ripe fruits, so such a green track was a false fruit or a fruit the later dates
+  miss;
 - `present`: every other observation (the first date's fruits, fruits that entered the view, fruits seen again).
 
 The recorded stretch of a date is the x range of its cameras in the season frame, less edge_margin_m at
@@ -33,8 +34,8 @@ RIPENESS_RANK = {"fruit_green": 0, "fruit_mixed": 1, "fruit_red": 2}
 """Ordinal ripeness of the fruit classes (pipeline/classes.py names); other names rank with green."""
 RED = "fruit_red"
 PICKED_FROM = "fruit_mixed"
-"""the least ripe class a fruit is picked at: a track that ends before it reached this class is lost (a false
-fruit, or one the later dates miss), not harvested; a green fruit takes more than a week to ripen."""
+"""the least ripe class a fruit is picked at: a track that ends before it reached this class, sooner than
+ripen_days after it was last seen, is lost (a false fruit, or one the later dates miss), not harvested."""
 LEFTOVER_SHRINK = 2.0
 """multiple of size_tolerance_m a not-yet-red track left over after the assignment may shrink by to take a fruit
 left over at its place (twice the tolerance: two diameters' noise, against one fruit gone and another there)."""
@@ -71,6 +72,10 @@ class Config:
     """what each later date is registered on: 'structure' (its stems, leaves and floor, the rows'
     structure.parquet, where it and the dates before it have one, with the fruit pairs that agree; else its
     fruits) or 'fruits' (the fruits' consensus alone, which needs a few fruits that both dates show)."""
+    ripen_days: float = 10.0
+    """days (>= 0): a green track that ends is lost, not harvested, when the next date came sooner than this
+    after its last sighting; later, the fruit may have ripened and been picked. About the crop's time from
+    green to picked (sweet pepper: mixed for 3-8 days, picked 4-10 days after red); 0 harvests every ended track."""
     edge_margin_m: float = 0.05
     """the stretch of row a date recorded is its cameras' x range less this margin at each end (m, >= 0);
     set and harvest events are only judged inside it."""
@@ -81,7 +86,7 @@ class Config:
                 raise ValueError(f"track.{name} must be > 0, got {getattr(self, name)}")
         if self.registration not in ("structure", "fruits"):
             raise ValueError(f"track.registration must be 'structure' or 'fruits', got {self.registration!r}")
-        for name in ("growth_mm_per_day", "max_missed_dates", "edge_margin_m"):
+        for name in ("growth_mm_per_day", "max_missed_dates", "edge_margin_m", "ripen_days"):
             if getattr(self, name) < 0:
                 raise ValueError(f"track.{name} must be >= 0, got {getattr(self, name)}")
 
@@ -251,7 +256,7 @@ def _tables(dates: list[DateRows], tracks: list[_Track], positions: list[np.ndar
         k0, kl = t.obs[0][0], t.obs[-1][0]
         first = obs[0]
         gone = kl < n - 1 and _inside(obs[-1]["x_m"], stretches[kl + 1])   # not seen where the next date looked
-        lost = gone and t.rank < RIPENESS_RANK[PICKED_FROM]
+        lost = gone and t.rank < RIPENESS_RANK[PICKED_FROM] and dates[kl + 1].day - dates[kl].day < cfg.ripen_days
         if lost:
             lost_on[kl + 1] += 1
         if (k0 > 0 and _inside(first["x_m"], stretches[k0 - 1]) and np.isfinite(first["diameter_m"])

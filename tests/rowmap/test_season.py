@@ -110,7 +110,8 @@ def test_fruits_outside_the_previous_stretch_are_present_not_set():
 
 @pytest.mark.parametrize("name, bad", [("gate_m", 0), ("size_tolerance_m", 0), ("max_shift_m", 0),
                                        ("set_max_diameter_m", 0), ("growth_mm_per_day", -1),
-                                       ("max_missed_dates", -1), ("edge_margin_m", -0.1)])
+                                       ("max_missed_dates", -1), ("edge_margin_m", -0.1),
+                                       ("ripen_days", -1)])
 def test_settings_are_checked(name, bad):
     with pytest.raises(ValueError, match=name):
         Config(**{name: bad})
@@ -282,3 +283,22 @@ def test_a_green_track_that_ends_is_lost_neither_harvested_nor_set_after_one_sig
     assert events[w.gid[0]] == {"present", "harvested"}
     assert events[w.gid[1]] == {"present"}
     assert events[100] == {"present"} and events[101] == {"set", "present"}
+
+
+def test_ripen_days_a_green_fruit_gone_after_a_longer_interval_was_picked():
+    """A green fruit gone a week later was not picked (lost); gone two weeks later it may have ripened and been
+    picked in between (harvested), with ripen_days between the two intervals."""
+    rng = np.random.default_rng(11)
+    w = world_fruits(rng, 14)
+    w = w[(w.x > 0.1) & (w.x < 1.9)].reset_index(drop=True)
+    w["c"] = "fruit_green"
+
+    def season(step_days: float, cfg: Config):
+        dates = [as_date(s, step_days * i, f, np.eye(4), np.random.default_rng(12))
+                 for i, (s, f) in enumerate(zip("ab", [w, w.drop(index=[3])]))]
+        return track_season(dates, cfg).dates
+
+    week, fortnight = season(7.0, Config(ripen_days=10.0)), season(14.0, Config(ripen_days=10.0))
+    assert (list(week.lost), list(week.harvested)) == ([0, 1], [0, 0])
+    assert (list(fortnight.lost), list(fortnight.harvested)) == ([0, 0], [0, 1])
+    assert list(season(14.0, Config(ripen_days=20.0)).lost) == [0, 1]
