@@ -18,8 +18,8 @@ SCHEMA = table_schema(
         "m", nullable=True),
     col("class_name", pa.string(), "ripeness class on that date (null on a harvested row)", nullable=True),
     col("event", pa.string(), "'set' (first seen, small, where the previous date saw no fruit), 'present' or "
-        "'harvested' (a fruit once seen mixed or red, gone from where the date recorded; the row repeats the last "
-        "position; a green fruit that goes is lost, with no row)"),
+        "'harvested' (a fruit once seen mixed or red, or green track.ripen_days or more before, gone from where the "
+        "date recorded; the row repeats the last position; a green fruit that goes sooner is lost, with no row)"),
     col("x_m", pa.float64(), "centre x in the season frame", "m"),
     col("y_m", pa.float64(), "centre y in the season frame", "m"),
     col("z_m", pa.float64(), "centre z in the season frame", "m"),

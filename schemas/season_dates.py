@@ -16,7 +16,8 @@ SCHEMA = table_schema(
     col("set", pa.int32(), "set events on that date", "fruits"),
     col("harvested", pa.int32(), "harvested events on that date", "fruits"),
     col("lost", pa.int32(), "tracks lost on that date: fruits never seen mixed or red, not seen where it recorded "
-        "(false fruits of an earlier date's map, or fruits it missed); not harvested", "fruits"),
+        "less than track.ripen_days after their last sighting (false fruits of an earlier date's map, or fruits it "
+        "missed); not harvested", "fruits"),
     col("registered_on", pa.string(), "what the date was registered on: 'structure' (its stems, leaves and floor: "
         "structure.parquet), 'fruits' (the fruits' consensus) or 'first date' (the season frame itself)"),
     col("registration_inliers", pa.int32(), "fruit pairs within the final inlier radius after registration",
