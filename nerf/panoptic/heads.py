@@ -14,7 +14,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from nerf.config import GridMode
+from nerf.config import GridMode, PanopticConfig
 from nerf.encoding import PermutoEncoding
 from nerf.fields.base import mlp
 
@@ -22,7 +22,7 @@ from nerf.fields.base import mlp
 class PanopticField(nn.Module):
     def __init__(self, n_levels: int, n_features: int, log2_capacity: int, coarsest_scale: float,
                  finest_scale: float, n_classes: int, n_slots: int, mode: GridMode = "delta",
-                 hidden: int = 64, seed: int = 1):
+                 hidden: int = PanopticConfig.hidden, seed: int = 1):
         super().__init__()
         if mode not in ("delta", "shared", "independent"):
             raise ValueError(f"panoptic grid mode must be delta, shared or independent, got {mode!r}")

@@ -53,12 +53,12 @@ def test_build_field_picks_the_kind_and_names_the_choices():
 
 
 def test_the_baseline_field_does_not_follow_our_decoders_width():
-    def n_params(hidden: int) -> int:
-        return sum(p.numel() for p in build_field(preset("cpu", field_kind="mlp_pe", hidden=hidden), 1.0).parameters())
+    def n_params(**changes) -> int:
+        return sum(p.numel() for p in build_field(preset("cpu", **changes), 1.0).parameters())
 
-    ours = [sum(p.numel() for p in build_field(preset("cpu", hidden=h), 1.0).parameters()) for h in (32, 64)]
-    assert ours[0] < ours[1]   # the width reaches our decoders ...
-    assert n_params(32) == n_params(64)   # ... and not the baseline's colour head
+    assert n_params(hidden=32) < n_params(hidden=64)   # the width reaches our decoders ...
+    # ... and not the baseline's colour head
+    assert n_params(field_kind="mlp_pe", hidden=32) == n_params(field_kind="mlp_pe", hidden=64)
 
 
 def test_mlp_baseline_trains_and_renders_finite(mlp_fit):
