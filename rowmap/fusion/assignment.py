@@ -111,14 +111,14 @@ def round_views(frame: Frame, models: FruitModels, owners: dict, cfg: Config) ->
     centre [3], points, camera centre [3]))] of the detector segments lying mostly on fruits, each given to the
     fruit holding most of it (at least min_group_px of its pixels)."""
     _, ev, ids = fused_label(frame, models, owners, cfg)
-    grown, segs, taken = [], [], set()
+    given, segs, taken = [], [], set()
     fruit_px = np.flatnonzero(ids > 0)
     rows, _, fruit, starts, ends = runs_by_key(fruit_px, fruit_px, ids[fruit_px])   # evidence rows per fruit
     for f, s0, s1 in zip(fruit[starts], starts, ends):
         pts = ev.points[rows[s0:s1]]
-        grown.append((int(f), pts[subsample(len(pts), MAX_POINTS)]))
+        given.append((int(f), pts[subsample(len(pts), MAX_POINTS)]))
     if cfg.detector_split_m <= 0:
-        return grown, segs
+        return given, segs
     on = np.flatnonzero((ids > 0) & (ev.segment > 0))
     size = np.bincount(ev.segment, minlength=1)
     covered = np.bincount(ev.segment[on], minlength=len(size))
@@ -132,7 +132,7 @@ def round_views(frame: Frame, models: FruitModels, owners: dict, cfg: Config) ->
             pts = ev.points[rows[starts[j]:ends[j]]]
             segs.append((f, (frame.frame_id, s, n, robust_centre(pts)[0], pts[:: max(1, len(pts) // 400)],
                              frame.c2w[:3, 3])))
-    return grown, segs
+    return given, segs
 
 
 def fuse(frame_ids: Iterable[int], load: Callable[[int], Frame], models: FruitModels, cfg: Config,
@@ -143,15 +143,15 @@ def fuse(frame_ids: Iterable[int], load: Callable[[int], Frame], models: FruitMo
     every core); `load` must be thread-safe."""
     frame_ids, owners, threads = list(frame_ids), {}, threads or available_cores()
     for r in range(cfg.refine_rounds):
-        grown: dict[int, list[np.ndarray]] = defaultdict(list)
+        given: dict[int, list[np.ndarray]] = defaultdict(list)
         seg_views: dict[int, list[tuple]] = defaultdict(list)
         views = in_order(lambda fid: round_views(load(fid), models, owners, cfg), frame_ids, threads)
         for points, segs in progress(views, f"fusion round {r + 1}", len(frame_ids)):
             for f, pts in points:
-                grown[f].append(pts)
+                given[f].append(pts)
             for f, view in segs:
                 seg_views[f].append(view)
-        models, owners = update(models, grown, seg_views, cfg)
+        models, owners = update(models, given, seg_views, cfg)
     fused = in_order(lambda fid: (fid, fused_label(load(fid), models, owners, cfg)[0]), frame_ids, threads)
     for fid, out in progress(fused, "write fused frames", len(frame_ids)):
         yield fid, out, models

@@ -32,13 +32,12 @@ class FruitModel:
     radius: float = np.nan
     surface: cKDTree | None = None     # the points inside the sphere, one per margin_m / 2 cube
 
-    def refit(self, cfg: Config, keep_sphere: bool = False, behind: tuple[np.ndarray, float] | None = None
-              ) -> "FruitModel":
-        """Fit the sphere to the points (kept where none fits, or with keep_sphere where there is one) and the
-        seen surface to the points inside it. `behind` (camera centre [3], radius in m): where the free fit is
-        no fruit (a shallow cap), a sphere of that radius behind the cap as seen from that camera."""
+    def refit(self, cfg: Config, behind: tuple[np.ndarray, float] | None = None) -> "FruitModel":
+        """Fit the sphere to the points (the one it has is kept where none fits) and the seen surface to the points
+        inside it. `behind` (camera centre [3], radius in m): where the free fit is no fruit (a shallow cap), a
+        sphere of that radius behind the cap as seen from that camera."""
         fit = None
-        if (self.centre is None or not keep_sphere) and len(self.points) >= MIN_SPHERE_POINTS:
+        if len(self.points) >= MIN_SPHERE_POINTS:
             pts = self.points[subsample(len(self.points), MAX_FIT_POINTS)]
             fit = fruit_sphere(pts, cfg.max_fruit_radius_m)
             if fit is None and behind is not None and behind[1] > 0:
@@ -151,19 +150,21 @@ def detector_clusters(views: list[tuple], ball: tuple | None, cfg: Config) -> tu
     return np.array([rank.get(c, -1) for c in raw]), [np.median(pts[raw == c], 0) for c in order]
 
 
-def update(models: FruitModels, grown: dict[int, list[np.ndarray]], seg_views: dict[int, list[tuple]],
+def update(models: FruitModels, given: dict[int, list[np.ndarray]], seg_views: dict[int, list[tuple]],
            cfg: Config) -> tuple[FruitModels, dict[tuple[int, int], int]]:
-    """Refit the models after a round: each fruit's seen surface grows by the points it was given (`grown`); a
-    fruit whose detector segments (`seg_views`) form several clusters (detector_clusters) is split: cluster 0
-    keeps its id, each other joins the fruit whose centre lies within max_match_distance_m (or inside its
-    sphere), else is a new fruit. Returns the models and {(frame, segment): fruit id} of the split fruits'
-    segments (the detector evidence of the next round). A cluster whose points fit no sphere (a fruit seen
-    only as a cap, at the row's ends or the image border) gets one of the row's typical radius behind them."""
+    """Refit the models after a round: each fruit's sphere and seen surface to the points the round gave it
+    (`given`; a fruit given none keeps its model), not to the render slots the association fitted them to: where
+    a window painted two touching fruits as one slot, the detector and the other fruit's shape take its pixels
+    back in the round, and the refit follows. A fruit whose detector segments (`seg_views`) form several
+    clusters (detector_clusters) is split: cluster 0 keeps its id, each other joins the fruit whose centre lies
+    within max_match_distance_m (or inside its sphere), else is a new fruit. Returns the models and {(frame,
+    segment): fruit id} of the split fruits' segments (the detector evidence of the next round). A cluster whose
+    points fit no sphere (a fruit seen only as a cap, at the row's ends or the image border) gets one of the
+    row's typical radius behind them."""
     out = FruitModels()
     out.typical_radius = models.typical_radius
     for f, m in models.items():
-        pts = np.concatenate([m.points, *grown.get(f, [])]) if grown.get(f) else m.points
-        out[f] = FruitModel(m.class_id, pts, m.centre, m.radius).refit(cfg, keep_sphere=True)
+        out[f] = FruitModel(m.class_id, np.concatenate(given[f]), m.centre, m.radius).refit(cfg) if given.get(f) else m
     owners = {}
     for fruit, views in sorted(seg_views.items()):
         m = out.get(fruit)

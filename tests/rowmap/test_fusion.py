@@ -280,3 +280,35 @@ def test_a_detector_segment_the_render_paints_mostly_as_background_names_no_frui
     assert (ev.detector[ev.segment == 5] == 0).all()             # some fruit, which one the models decide
     assert (ev.detector[ev.segment == 6] == option_of_1).all()   # painted mostly as fruit 1: fruit 1's
     assert (fused_label(frame=frame, models=models, owners={}, cfg=cfg)[0][sliver] == 2).mean() > 0.8
+
+
+
+def test_a_round_refits_a_fruit_model_the_association_placed_off_to_the_pixels_it_was_given():
+    """A window rendered fruit 2 most of its radius away from fruit 1, so its model (from the slots) lies there,
+    and the render bleeds fruit 1 over fruit 2's near side. Assigned with that model, the bled pixels stay fruit
+    1's (they lie outside fruit 2's sphere); a round gives fruit 2 the pixels the render and the detector show
+    it, its model is refitted to them, and the next assignment gives most bled pixels back."""
+    from rowmap.fusion import fuse as fuse_frames
+
+    centres = [np.array([-0.03, 0.0, 0.5]), np.array([0.03, 0.0, 0.5])]
+    depth, who = scene(centres)
+    label = who + 1
+    cols = np.nonzero((who == 1).any(0))[0]
+    bled = (who == 1) & (np.arange(HW[1])[None] <= cols.min() + 7)   # 8 columns of fruit 2 painted as fruit 1
+    label[bled] = 1
+    segments = np.where(who >= 0, who + 1, 0)                       # the detector shows both fruits
+
+    def load(fid: int) -> Frame:
+        return Frame(frame_id=fid, label=label, depth=depth, segments=segments, k=K, c2w=np.eye(4))
+
+    placed_off = centres[1] + np.array([0.7 * R, 0.0, 0.0])
+    out = {}
+    for rounds in (0, 1):
+        cfg = Config(refine_rounds=rounds)
+        models = FruitModels({1: model(centres[0], cfg), 2: model(placed_off, cfg)})
+        *_, (_, fused, final) = fuse_frames(range(3), load, models, cfg, threads=1)
+        out[rounds] = (fused[bled] == 2).mean(), (fused[who >= 0] == (who + 1)[who >= 0]).mean(), final[2]
+    assert np.allclose(out[0][2].centre, placed_off, atol=0.1 * R)        # no round: the model stays off
+    assert np.linalg.norm(out[1][2].centre - centres[1]) < 0.05 * R         # a round: where its pixels are
+    assert out[0][0] < 0.3 < 0.7 < out[1][0]
+    assert out[0][1] < 0.9 < 0.96 < out[1][1]
