@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from collections import defaultdict
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from itertools import combinations
 
 import numpy as np
@@ -153,18 +153,18 @@ def detector_clusters(views: list[tuple], ball: tuple | None, cfg: Config) -> tu
 def update(models: FruitModels, given: dict[int, list[np.ndarray]], seg_views: dict[int, list[tuple]],
            cfg: Config) -> tuple[FruitModels, dict[tuple[int, int], int]]:
     """Refit the models after a round: each fruit's sphere and seen surface to the points the round gave it
-    (`given`; a fruit given none keeps its model), not to the render slots the association fitted them to: where
-    a window painted two touching fruits as one slot, the detector and the other fruit's shape take its pixels
-    back in the round, and the refit follows. A fruit whose detector segments (`seg_views`) form several
-    clusters (detector_clusters) is split: cluster 0 keeps its id, each other joins the fruit whose centre lies
-    within max_match_distance_m (or inside its sphere), else is a new fruit. Returns the models and {(frame,
-    segment): fruit id} of the split fruits' segments (the detector evidence of the next round). A cluster whose
-    points fit no sphere (a fruit seen only as a cap, at the row's ends or the image border) gets one of the
-    row's typical radius behind them."""
+    (`given`; a fruit given none keeps a copy of its model, so the models passed in are not changed), not to
+    the render slots the association fitted them to: where a window painted two touching fruits as one slot,
+    the detector and the other fruit's shape take its pixels back in the round, and the refit follows. A fruit
+    whose detector segments (`seg_views`) form several clusters (detector_clusters) is split: cluster 0 keeps
+    its id, each other joins the fruit whose centre lies within max_match_distance_m (or inside its sphere),
+    else is a new fruit. Returns the models and {(frame, segment): fruit id} of the split fruits' segments (the
+    detector evidence of the next round). A cluster whose points fit no sphere (a fruit seen only as a cap, at
+    the row's ends or the image border) gets one of the row's typical radius behind them."""
     out = FruitModels()
     out.typical_radius = models.typical_radius
     for f, m in models.items():
-        out[f] = FruitModel(m.class_id, np.concatenate(given[f]), m.centre, m.radius).refit(cfg) if given.get(f) else m
+        out[f] = FruitModel(m.class_id, np.concatenate(given[f]), m.centre, m.radius).refit(cfg) if given.get(f) else replace(m)
     owners = {}
     for fruit, views in sorted(seg_views.items()):
         m = out.get(fruit)

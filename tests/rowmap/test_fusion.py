@@ -312,3 +312,23 @@ def test_a_round_refits_a_fruit_model_the_association_placed_off_to_the_pixels_i
     assert np.linalg.norm(out[1][2].centre - centres[1]) < 0.05 * R         # a round: where its pixels are
     assert out[0][0] < 0.3 < 0.7 < out[1][0]
     assert out[0][1] < 0.9 < 0.96 < out[1][1]
+
+
+def test_a_split_off_cluster_joins_its_neighbour_and_leaves_the_models_passed_in_unchanged():
+    """Fruit 1's detector segments form two clusters seen together in three frames, one of them on fruit 2 (which
+    the round gave no points): that cluster's segments become fruit 2's evidence and its points join fruit 2's
+    model, while the models the round started from keep their points."""
+    from rowmap.fusion.models import update
+
+    cfg = Config()
+    centres = [np.array([-0.03, 0.0, 0.5]), np.array([0.03, 0.0, 0.5])]
+    models = FruitModels({i + 1: model(c, cfg) for i, c in enumerate(centres)})
+    models.typical_radius = R
+    before = {f: m.points.copy() for f, m in models.items()}
+    cap = model(centres[1], cfg).points[:200]
+    views = [(fid, seg, 300, c, pts, np.zeros(3)) for fid in range(3)
+             for seg, c, pts in ((1, centres[0], models[1].points[:200]), (2, centres[1], cap))]
+    out, owners = update(models, {1: [models[1].points]}, {1: views}, cfg)
+    assert owners == {(fid, 1): 1 for fid in range(3)} | {(fid, 2): 2 for fid in range(3)}
+    assert len(out[2].points) == len(before[2]) + 3 * len(cap)
+    assert all(np.array_equal(models[f].points, before[f]) for f in models)
