@@ -108,11 +108,25 @@ UNSEEN: tuple[FamilyRow, ...] = (
     FamilyRow("unseen2_crowded_merges", "crowded with many merges, few false positives, good odometry",
               seed=404, fruits_per_m=36, det_miss_rate=0.17, det_false_pos_rate=0.22, det_merge_rate=0.125,
               odom_drift_m_per_m=0.028, odom_yaw_drift_deg_per_m=1.4, n_frames=135),
+    FamilyRow("unseen3_medium", "medium density, a typical detector, typical drift",
+              seed=501, fruits_per_m=17, det_miss_rate=0.11, det_false_pos_rate=0.33, det_merge_rate=0.055,
+              odom_drift_m_per_m=0.032, odom_yaw_drift_deg_per_m=2.2, n_frames=145),
+    FamilyRow("unseen3_dense", "dense, a typical detector, mild drift",
+              seed=502, fruits_per_m=29, det_miss_rate=0.19, det_false_pos_rate=0.37, det_merge_rate=0.085,
+              odom_drift_m_per_m=0.027, odom_yaw_drift_deg_per_m=1.9, n_frames=175),
+    FamilyRow("unseen3_crowded", "crowded, many merges, drift between typical and strong",
+              seed=503, fruits_per_m=34, det_miss_rate=0.21, det_false_pos_rate=0.31, det_merge_rate=0.115,
+              odom_drift_m_per_m=0.036, odom_yaw_drift_deg_per_m=2.4, n_frames=165),
+    FamilyRow("unseen3_weak", "a weak detector and strong drift at medium density",
+              seed=504, fruits_per_m=21, det_miss_rate=0.29, det_false_pos_rate=0.52, det_merge_rate=0.075,
+              odom_drift_m_per_m=0.047, odom_yaw_drift_deg_per_m=3.3, n_frames=135),
 )
 """Unseen rows (`pag bench rows --unseen`): seeds and knob values in no family or held-out row. Their outputs
 are read once, when a design is final, and reported as they come; nothing is tuned on them. The first four
 were defined before the fusion redesign (issue 48) began and read once after it; the `unseen2_` rows were
-defined after that reading, before the redesign's last changes, and are read once after them. Rows beyond
+defined after that reading, before the redesign's last changes, and are read once after them; the `unseen3_`
+rows were defined on 2026-12-07, after the round refit (c4012cf) and before the changes that follow it, all
+within the family's ranges, and are read once after those changes. Rows beyond
 the family's 8-40 fruits/m or 0.35 miss rate (0.40, 0.7 false positives per frame) test that mechanisms
 extrapolate."""
 
