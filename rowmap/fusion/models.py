@@ -20,6 +20,10 @@ MIN_SPHERE_POINTS = 20
 """points: fewer fit no sphere."""
 MAX_FIT_POINTS = 3000
 """points a sphere is fitted to (evenly subsampled)."""
+TWO_FRUITS_APART = 1.5
+"""multiple of the row's typical fruit radius: two clusters of one fruit's detector segments seen in one frame
+whose centres lie farther apart are two fruits (the pieces of one fruit that a leaf cuts apart lie at most about
+1.3 radii apart, a sliver at its rim and the rest)."""
 
 
 @dataclass
@@ -116,13 +120,14 @@ def fit_models(groups: list[list[int]], local: list[LocalFruit], views: dict, cf
     return out
 
 
-def detector_clusters(views: list[tuple], ball: tuple | None, cfg: Config) -> tuple[np.ndarray, list[np.ndarray]]:
+def detector_clusters(views: list[tuple], ball: tuple | None, typical_radius: float, cfg: Config
+                      ) -> tuple[np.ndarray, list[np.ndarray]]:
     """The fruits one row fruit holds by its detector segments `views` ((frame, segment, pixels, centre [3],
     points, camera centre [3]) each). Centres closer than detector_split_m link; two clusters are two fruits
-    where both are seen in MIN_SPLIT_FRAMES frames and together in as many, where they share a frame and the
-    smaller lies off the fruit's sphere `ball` ((centre, radius) or None), or where one lies off it beside the
-    largest. Returns (cluster of each view, -1 none; their centres, most pixels first), or (all -1, []) for one
-    fruit."""
+    where both are seen in MIN_SPLIT_FRAMES frames and together in as many, where they share a frame and their
+    centres lie more than TWO_FRUITS_APART typical radii (m) apart, or where one lies off the fruit's sphere
+    `ball` ((centre, radius) or None) beside the largest. Returns (cluster of each view, -1 none; their centres,
+    most pixels first), or (all -1, []) for one fruit."""
     labels = np.full(len(views), -1)
     if cfg.detector_split_m <= 0 or len(views) < 2:
         return labels, []
@@ -133,21 +138,21 @@ def detector_clusters(views: list[tuple], ball: tuple | None, cfg: Config) -> tu
         frames_of[c].add(f)
         px[c] += n
     lasting = {c for c, fs in frames_of.items() if len(fs) >= MIN_SPLIT_FRAMES}
-    off = {c: None if ball is None else bool(np.linalg.norm(np.median(pts[raw == c], 0) - ball[0]) > ball[1] + cfg.margin_m)
-           for c in frames_of}
+    centre = {c: np.median(pts[raw == c], 0) for c in frames_of}
+    off = {c: ball is not None and bool(np.linalg.norm(centre[c] - ball[0]) > ball[1] + cfg.margin_m) for c in centre}
     largest = max(frames_of, key=px.get)
     together = set()
     for a, b in combinations(sorted(frames_of), 2):
         shared = len(frames_of[a] & frames_of[b])
         if ((a in lasting and b in lasting and shared >= MIN_SPLIT_FRAMES)
-                or (shared and off[min(a, b, key=px.get)] is not False)
-                or (largest in (a, b) and off[a if b == largest else b] is True)):
+                or (shared and np.linalg.norm(centre[a] - centre[b]) > TWO_FRUITS_APART * typical_radius)
+                or (largest in (a, b) and off[a if b == largest else b])):
             together |= {a, b}
     if not together:
         return labels, []
     order = sorted(together, key=lambda c: -px[c])
     rank = {c: i for i, c in enumerate(order)}
-    return np.array([rank.get(c, -1) for c in raw]), [np.median(pts[raw == c], 0) for c in order]
+    return np.array([rank.get(c, -1) for c in raw]), [centre[c] for c in order]
 
 
 def update(models: FruitModels, given: dict[int, list[np.ndarray]], seg_views: dict[int, list[tuple]],
@@ -170,7 +175,8 @@ def update(models: FruitModels, given: dict[int, list[np.ndarray]], seg_views: d
         m = out.get(fruit)
         if m is None:
             continue
-        labels, centres = detector_clusters(views, None if m.centre is None else (m.centre, m.radius), cfg)
+        labels, centres = detector_clusters(views, None if m.centre is None else (m.centre, m.radius),
+                                            out.typical_radius, cfg)
         if not centres:
             continue
         ids = [fruit]

@@ -332,3 +332,27 @@ def test_a_split_off_cluster_joins_its_neighbour_and_leaves_the_models_passed_in
     assert owners == {(fid, 1): 1 for fid in range(3)} | {(fid, 2): 2 for fid in range(3)}
     assert len(out[2].points) == len(before[2]) + 3 * len(cap)
     assert all(np.array_equal(models[f].points, before[f]) for f in models)
+
+
+@pytest.mark.parametrize("apart_m, split", [(0.08, True), (0.038, False)])
+def test_a_fruit_s_detector_segments_seen_in_one_frame_far_apart_are_two_fruits(apart_m, split):
+    """A window painted two fruits as one slot (one model, its sphere around both); the detector shows them as
+    two segments, seen together in one frame only. Segments farther apart than a fruit allows (8 cm, radius
+    3 cm) are two fruits: the second cluster's segments become a new fruit's evidence. Two pieces of one fruit
+    (3.8 cm apart: a leaf cut its segment) stay one."""
+    from rowmap.fusion.models import update
+
+    cfg = Config()
+    a, b = np.array([-apart_m / 2, 0.0, 0.5]), np.array([apart_m / 2, 0.0, 0.5])
+    both = FruitModel(class_id=2, points=np.zeros((0, 3)), centre=(a + b) / 2, radius=apart_m / 2 + R / 2)
+    models = FruitModels({1: both})
+    models.typical_radius = R
+    views = [(fid, seg, 300, c, model(c, cfg).points[:300], np.zeros(3))
+             for seg, c, fids in ((1, a, (0, 1, 2)), (2, b, (2, 3))) for fid in fids]
+    out, owners = update(models, {}, {1: views}, cfg)
+    if split:
+        assert sorted(out) == [1, 2]
+        assert owners == {(0, 1): 1, (1, 1): 1, (2, 1): 1, (2, 2): 2, (3, 2): 2}
+        assert np.linalg.norm(out[2].centre - b) < R / 3 and np.linalg.norm(out[1].centre - a) < R / 3
+    else:
+        assert sorted(out) == [1] and owners == {}
