@@ -89,7 +89,8 @@ def tiles(ev: Evidence, shape: tuple[int, int], models: FruitModels, cfg: Config
         yield rows, np.unique(np.r_[everywhere, near, named[named > 0] - 1].astype(np.int64))
 
 
-def fused_label(frame: Frame, models: FruitModels, owners: dict, cfg: Config) -> tuple[np.ndarray, Evidence, np.ndarray]:
+def fused_label(frame: Frame, models: FruitModels, owners: dict, cfg: Config
+                ) -> tuple[np.ndarray, Evidence, np.ndarray]:
     """([H, W] fused fruit ids of one frame: 0 = background, -1 = void where the render had a dropped slot and
     the pixel stays background; the evidence (pixel_evidence); [P] the id each evidence pixel takes, the argmin
     of `cost`, found tile by tile (tiles))."""

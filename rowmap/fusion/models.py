@@ -169,7 +169,10 @@ def update(models: FruitModels, given: dict[int, list[np.ndarray]], seg_views: d
     out = FruitModels()
     out.typical_radius = models.typical_radius
     for f, m in models.items():
-        out[f] = FruitModel(m.class_id, np.concatenate(given[f]), m.centre, m.radius).refit(cfg) if given.get(f) else replace(m)
+        if given.get(f):
+            out[f] = FruitModel(m.class_id, np.concatenate(given[f]), m.centre, m.radius).refit(cfg)
+        else:
+            out[f] = replace(m)   # a copy: a cluster split off below may add points to it
     owners = {}
     for fruit, views in sorted(seg_views.items()):
         m = out.get(fruit)
