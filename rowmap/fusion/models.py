@@ -124,10 +124,10 @@ def detector_clusters(views: list[tuple], ball: tuple | None, typical_radius: fl
                       ) -> tuple[np.ndarray, list[np.ndarray]]:
     """The fruits one row fruit holds by its detector segments `views` ((frame, segment, pixels, centre [3],
     points, camera centre [3]) each). Centres closer than detector_split_m link; two clusters are two fruits
-    where both are seen in MIN_SPLIT_FRAMES frames and together in as many, where they share a frame and their
-    centres lie more than TWO_FRUITS_APART typical radii (m) apart, or where one lies off the fruit's sphere
-    `ball` ((centre, radius) or None) beside the largest. Returns (cluster of each view, -1 none; their centres,
-    most pixels first), or (all -1, []) for one fruit."""
+    where they are seen together in MIN_SPLIT_FRAMES frames, where they share a frame and their centres lie
+    more than TWO_FRUITS_APART x `typical_radius` (m) apart, or where one lies off the fruit's sphere `ball`
+    ((centre, radius) or None) beside the largest. Returns (cluster of each view, -1 none; their centres, most
+    pixels first), or (all -1, []) for one fruit."""
     labels = np.full(len(views), -1)
     if cfg.detector_split_m <= 0 or len(views) < 2:
         return labels, []
@@ -137,14 +137,13 @@ def detector_clusters(views: list[tuple], ball: tuple | None, typical_radius: fl
     for (f, _, n, *_), c in zip(views, raw):
         frames_of[c].add(f)
         px[c] += n
-    lasting = {c for c, fs in frames_of.items() if len(fs) >= MIN_SPLIT_FRAMES}
     centre = {c: np.median(pts[raw == c], 0) for c in frames_of}
     off = {c: ball is not None and bool(np.linalg.norm(centre[c] - ball[0]) > ball[1] + cfg.margin_m) for c in centre}
     largest = max(frames_of, key=px.get)
     together = set()
     for a, b in combinations(sorted(frames_of), 2):
         shared = len(frames_of[a] & frames_of[b])
-        if ((a in lasting and b in lasting and shared >= MIN_SPLIT_FRAMES)
+        if (shared >= MIN_SPLIT_FRAMES
                 or (shared and np.linalg.norm(centre[a] - centre[b]) > TWO_FRUITS_APART * typical_radius)
                 or (largest in (a, b) and off[a if b == largest else b])):
             together |= {a, b}
