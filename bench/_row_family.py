@@ -120,13 +120,27 @@ UNSEEN: tuple[FamilyRow, ...] = (
     FamilyRow("unseen3_weak", "a weak detector and strong drift at medium density",
               seed=504, fruits_per_m=21, det_miss_rate=0.29, det_false_pos_rate=0.52, det_merge_rate=0.075,
               odom_drift_m_per_m=0.047, odom_yaw_drift_deg_per_m=3.3, n_frames=135),
+    FamilyRow("unseen4_medium", "medium density, a good detector, typical drift",
+              seed=601, fruits_per_m=19, det_miss_rate=0.14, det_false_pos_rate=0.27, det_merge_rate=0.06,
+              odom_drift_m_per_m=0.029, odom_yaw_drift_deg_per_m=1.7, n_frames=155),
+    FamilyRow("unseen4_dense", "dense, a noisy detector, mild drift",
+              seed=602, fruits_per_m=32, det_miss_rate=0.24, det_false_pos_rate=0.39, det_merge_rate=0.09,
+              odom_drift_m_per_m=0.024, odom_yaw_drift_deg_per_m=2.1, n_frames=185),
+    FamilyRow("unseen4_crowded", "crowded, few misses, drift between typical and strong",
+              seed=603, fruits_per_m=37, det_miss_rate=0.16, det_false_pos_rate=0.34, det_merge_rate=0.105,
+              odom_drift_m_per_m=0.041, odom_yaw_drift_deg_per_m=2.7, n_frames=150),
+    FamilyRow("unseen4_weak", "a weak detector and strong drift at light density",
+              seed=604, fruits_per_m=15, det_miss_rate=0.31, det_false_pos_rate=0.46, det_merge_rate=0.068,
+              odom_drift_m_per_m=0.052, odom_yaw_drift_deg_per_m=3.6, n_frames=130),
 )
 """Unseen rows (`pag bench rows --unseen`): seeds and knob values in no family or held-out row. Their outputs
 are read once, when a design is final, and reported as they come; nothing is tuned on them. The first four
 were defined before the fusion redesign (issue 48) began and read once after it; the `unseen2_` rows were
 defined after that reading, before the redesign's last changes, and are read once after them; the `unseen3_`
 rows were defined on 2026-12-07, after the round refit (c4012cf) and before the changes that follow it, all
-within the family's ranges, and are read once after those changes. Rows beyond
+within the family's ranges, and are read once after those changes; the `unseen4_` rows were defined after
+that reading (9f96e52), before the changes for the fruits at a recording's ends, and are read once after them.
+Rows beyond
 the family's 8-40 fruits/m or 0.35 miss rate (0.40, 0.7 false positives per frame) test that mechanisms
 extrapolate."""
 
