@@ -37,7 +37,8 @@ SCHEMA = table_schema(
     col("near_row", pa.bool_(), "median_depth_m <= fruit_count.max_depth_m; false = far row (not counted)"),
     col("counted", pa.bool_(), "in counts.parquet: near_row, seen in >= fruit_count.min_count_frames fused frames "
         "and with >= fruit_count.min_count_points points, and not unconfirmed by the detector (detector_p) "
-        "(false = far row, a fragment or unconfirmed)"),
+        "(false = far row, a fragment or unconfirmed); a fruit the detector alone tracks at a recording's end "
+        "(end_track_frames) is counted"),
     col("n_confirmed_frames", pa.int32(), "fused frames in which the detector's segments cover >= "
         "fruit_count.detector_cover of the fruit's pixels (null without detector images)", "frames", nullable=True),
     col("detector_p", pa.float64(), "chance that a real fruit is confirmed in as few of its fused frames, at the "
@@ -49,5 +50,8 @@ SCHEMA = table_schema(
     col("n_frames", pa.int32(), "fused frames the fruit appears in", "frames"),
     col("n_windows", pa.int32(), "windows whose instance slots were fused into this fruit", "windows"),
     col("first_frame_id", pa.int32(), "first fused frame it appears in"),
-    col("last_frame_id", pa.int32(), "last fused frame it appears in"),
+    col("last_frame_id", pa.int32(), "last fused frame it appears in (for an end-track fruit: its detector frames)"),
+    col("end_track_frames", pa.int32(), "a fruit at a recording's end that no two fused frames see, tracked by the "
+        "detector alone (fruit_count.end_tracks; no fused pixels, n_frames 0): the frames it is tracked in; null "
+        "for a fused fruit", "frames", nullable=True),
 )

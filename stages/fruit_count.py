@@ -19,12 +19,14 @@ from pipeline.parallel import available_cores, in_order
 from pipeline.stage import StageContext
 from nerf.surfaces import fit_sphere, plausible_fit, principal_extents, robust_centre, runs_by_key, unproject
 from rowmap.colours import id_colours
+from rowmap.detections import dropped_segments
+from rowmap.ends import Track, end_tracks
 from rowmap.geometry import subsample, with_sensor_depth
 from rowmap.renders import read_depth
 from rowmap.scoring import reference_pixels
 from rowmap.structure import VoxelCloud, frame_points
 
-INPUTS = ("frames", "nerf", "panoptic_frames", "panoptic", "fruit_slots", "images")
+INPUTS = ("frames", "nerf", "panoptic_frames", "panoptic", "fruit_slots", "images", "detections_filtered")
 OUTPUTS = ("fruits", "counts", "fruit_map", "structure")
 
 
@@ -98,6 +100,9 @@ class Config:
     alone: without shape evidence the detector has to confirm it in at least half the row's share of
     frames, however few frames it is seen in. Lower it to drop fewer fruits, 0 with a detector that misses
     fruits in many frames (0 switches both tests off)."""
+    end_tracks: bool = True
+    """count the fruits the detector alone tracks at a recording's ends, where no two fused frames see them
+    (rowmap.ends, segments linked within lone_fragment_m / 2; end_fruits; off as well with lone_fragment_m 0)."""
     max_fit_extent_ratio: float = 2.0
     """>= 1. A surface fit whose diameter (or length) exceeds this multiple of the largest extent of the points
     is rejected too: it extrapolates a whole fruit from a small cap (a fruit seen only as a sliver over or past
@@ -175,6 +180,51 @@ def lone_fragments(fruits: pd.DataFrame, candidates: list[int], min_distance_m: 
             out.append(f)
             taken_xyz.append(p)
     return out
+
+
+def end_fruits(tracks: list[Track], fruits: pd.DataFrame, cfg: Config) -> list[tuple[Track, dict]]:
+    """The end tracks (rowmap.ends) to count as fruits, with measure's result: seen in at least min_count_frames
+    frames, with a plausible surface fit (a fruit's shape), not a fragment by points or pixels, in the near row,
+    not oversize, and apart from every counted fruit of `fruits` and every track taken before (most points
+    first): farther than lone_fragment_m and than the sum of the two radii (two fruits do not overlap; a
+    segment merging two fruits measures wide and lies between them)."""
+    if not cfg.end_tracks or cfg.lone_fragment_m <= 0:
+        return []
+    counted = fruits[fruits.counted.astype(bool)]
+    taken = list(zip(counted[["x_m", "y_m", "z_m"]].to_numpy(np.float64),
+                     counted.diameter_m.fillna(0.0).to_numpy(np.float64) / 2))
+    out = []
+    for t in sorted(tracks, key=lambda t: -sum(map(len, t.points))):
+        if len(set(t.frames)) < cfg.min_count_frames:
+            continue
+        m = measure(np.concatenate(t.points), cfg)
+        shaped = m["diameter_sphere_m"] is not None or m["diameter_spheroid_m"] is not None
+        near_row = float(np.median(np.concatenate(t.depths))) <= cfg.max_depth_m
+        if (not shaped or not near_row or oversize(m["diameter_m"], cfg)
+                or is_fragment(len(set(t.frames)), m["n_points"], sum(t.ref_px), cfg)):
+            continue
+        p, r = np.array([m["x_m"], m["y_m"], m["z_m"]], np.float64), m["diameter_m"] / 2
+        if all(np.linalg.norm(p - q) > max(cfg.lone_fragment_m, r + rq) for q, rq in taken):
+            out.append((t, m))
+            taken.append((p, r))
+    return out
+
+
+def end_fruit_rows(ends: list[tuple[Track, dict]], first_id: int) -> list[dict]:
+    """The fruits.parquet rows of the end tracks to count (end_fruits), ids from first_id on: class by majority
+    of the detector's segments, no fused frames (n_frames 0), end_track_frames the frames tracked."""
+    rows = []
+    for fruit, (t, m) in enumerate(ends, start=first_id):
+        cls = np.asarray(t.classes)
+        things = cls[np.isin(cls, THING_IDS)]
+        c = int(np.bincount(things if len(things) else cls).argmax())
+        rows.append({"fruit_id": fruit, "class_id": c, "class_name": class_name(c),
+                     "class_confidence": float(np.mean(cls == c)), **m,
+                     "median_depth_m": float(np.median(np.concatenate(t.depths))), "near_row": True, "n_frames": 0,
+                     "counted": True, "n_confirmed_frames": None, "detector_p": None, "n_windows": 0,
+                     "first_frame_id": min(t.frames), "last_frame_id": max(t.frames),
+                     "end_track_frames": len(set(t.frames))})
+    return rows
 
 
 def oversize(diameter_m: float | None, cfg: Config) -> bool:
@@ -345,12 +395,22 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
                      "n_confirmed_frames": confirmed.get(fruit, 0) if fruit in checked else None,
                      "detector_p": p_real,
                      "n_windows": int(n_windows.get(fruit, 1)), "first_frame_id": min(seen[fruit]),
-                     "last_frame_id": max(seen[fruit])})
+                     "last_frame_id": max(seen[fruit]), "end_track_frames": None})
         cloud_pts.append(pts)
         cloud_ids.append(np.full(len(pts), fruit))
     fruits = pd.DataFrame(rows, columns=schemas.get("fruits").names) if rows else schemas.empty("fruits")
     lone = lone_fragments(fruits, lone_candidates, cfg.lone_fragment_m)
     fruits.loc[fruits.fruit_id.isin(lone), "counted"] = True
+    tracks = [] if not (cfg.end_tracks and cfg.lone_fragment_m > 0) else end_tracks(
+        frames, pf, ctx.data_root, dropped_segments(inputs.get("detections_filtered")), cfg.lone_fragment_m / 2,
+        cfg.max_points_per_view, cfg.min_points)
+    ends = end_fruits(tracks, fruits, cfg)
+    added = end_fruit_rows(ends, int(max(fruits.fruit_id, default=0)) + 1)
+    for r, (t, _) in zip(added, ends):
+        cloud_pts.append(np.concatenate(t.points))
+        cloud_ids.append(np.full(len(cloud_pts[-1]), r["fruit_id"]))
+    if added:
+        fruits = pd.concat([fruits, pd.DataFrame(added, columns=fruits.columns)], ignore_index=True)
     near = fruits[fruits.counted.astype(bool)]
     counts = pd.DataFrame([{"class_id": c.id, "class_name": c.name, "count": int((near.class_id == c.id).sum()),
                             "mean_diameter_m": (float(near.loc[near.class_id == c.id, "diameter_m"].dropna().mean())
@@ -383,12 +443,15 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
     if lone:
         ctx.note(f"fruits {lone}: fragments by size, confirmed by the detector in every frame and farther than "
                  f"{cfg.lone_fragment_m:g} m from any counted fruit (lone_fragment_m): counted")
+    if ends:
+        ctx.note(f"fruits {[r['fruit_id'] for r in added]}: tracked by the detector at the recording's "
+                 f"ends, where no two fused frames see them (end_tracks): counted, without fused pixels")
     if n_frag:
         ctx.note(f"{n_frag} near-row fruits not counted: fragments (under {cfg.min_count_frames} fused frames or "
                  f"under {cfg.min_count_points} points or pixels at 320x180), unconfirmed by the detector or wider than "
                  f"max_count_diameter_m; counted = false")
     ctx.summary.update(fruits=len(fruits), counted=len(near), far_row=n_far, fragments=n_frag, unconfirmed=len(unconf),
-                       oversize=len(too_wide), lone_fragments=len(lone),
+                       oversize=len(too_wide), lone_fragments=len(lone), end_fruits=len(ends),
                        **{f"count_{c}": int(n) for c, n in zip(counts.class_name, counts["count"])})
     table = structure.table()
     ctx.summary["structure_voxels"] = len(table)

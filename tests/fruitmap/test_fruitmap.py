@@ -11,7 +11,7 @@ import pyarrow.parquet as pq
 import pytest
 from scipy.spatial import cKDTree
 
-from nerf.geometry import pose_txyzq
+from nerf.geometry import pose_matrix, pose_txyzq
 from nerf.surfaces import fruit_sphere, runs_by_key
 from pipeline import cli
 from pipeline.classes import THING_IDS
@@ -21,6 +21,7 @@ from rowmap.detections import dropped_segments, fruit_segments
 from rowmap.geometry import pixel_groups, sphere_behind, window_alignments, with_sensor_depth
 from rowmap.renders import file_name
 from rowmap.scoring import reference_pixels
+from rowmap import ends
 from rowmap.fusion import association
 from stages import evaluate, fruit_count, panoptic_fusion, report
 
@@ -818,6 +819,77 @@ def test_a_lone_confirmed_fragment_is_counted_and_a_piece_next_to_a_counted_frui
     assert fruit_count.lone_fragments(fruits, [2, 3, 4, 5], 0.0) == []       # 0 = off
     with pytest.raises(ValueError, match="lone_fragment_m"):
         fruit_count.Config(lone_fragment_m=-0.01)
+
+
+def front_cap(rng, centre, r: float, n: int = 400) -> np.ndarray:
+    """Points on the camera-facing half of a sphere (the camera looks along +z)."""
+    d = rng.normal(size=(n, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    d[:, 2] = -np.abs(d[:, 2])
+    return np.asarray(centre, np.float64) + r * d
+
+
+def end_track(rng, centre, frames: list[int], r: float = 0.035, points: np.ndarray | None = None) -> ends.Track:
+    """A detector track seen in `frames`, each segment the front cap of a fruit at `centre` (or `points`)."""
+    t = ends.Track()
+    for f in frames:
+        pts = front_cap(rng, centre, r) if points is None else points
+        ends.extend(t, f, (2, pts, pts[:, 2], 300.0, np.median(pts, 0)))
+    return t
+
+
+def test_a_fruit_the_detector_alone_tracks_at_a_recording_end_is_counted_unless_a_fruit_explains_it():
+    rng = np.random.default_rng(5)
+    cfg = fruit_count.Config()
+    # fruit 1 counted at the origin (7 cm wide); fruit 2 a fragment, not counted
+    fruits = pd.DataFrame({"fruit_id": [1, 2], "counted": [True, False], "diameter_m": [0.07, 0.06],
+                           "x_m": [0.0, 0.20], "y_m": 0.0, "z_m": 1.0})
+    alone = end_track(rng, [0.12, 0.0, 1.0], [117, 118, 119])
+    at_fruit = end_track(rng, [0.01, 0.0, 1.0], [117, 118, 119])         # fruit 1 itself, tracked again
+    once = end_track(rng, [-0.15, 0.0, 1.0], [119])                       # one frame: a stray segment
+    by_fragment = end_track(rng, [0.20, 0.0, 1.0], [0, 1, 2])             # the fragment's fruit, seen enough
+    flat = end_track(rng, None, [0, 1, 2], points=np.c_[rng.uniform(-0.03, 0.03, (400, 2)) + [-0.3, 0.0],
+                                                         np.full(400, 1.0)])   # a leaf: no fruit shape
+    far = end_track(rng, [0.4, 0.0, 2.0], [0, 1, 2])                      # the far row
+    picked = fruit_count.end_fruits([alone, at_fruit, once, by_fragment, flat, far], fruits, cfg)
+    assert [t for t, _ in picked] == [alone, by_fragment] or [t for t, _ in picked] == [by_fragment, alone]
+    m = dict((id(t), m) for t, m in picked)[id(alone)]
+    assert np.linalg.norm([m["x_m"] - 0.12, m["y_m"], m["z_m"] - 1.0]) < 0.01 and abs(m["diameter_m"] - 0.07) < 0.01
+    # two tracks of one fruit count once; a track overlapping a counted fruit's sphere does not count, however
+    # far apart the centres (a segment merging two fruits measures wide and lies between them)
+    twice = fruit_count.end_fruits([alone, end_track(rng, [0.125, 0.0, 1.0], [118, 119])], fruits, cfg)
+    assert len(twice) == 1
+    wide = end_track(rng, [0.08, 0.0, 1.03], [117, 118, 119], r=0.06)   # 8.5 cm from fruit 1, 12 cm wide
+    assert fruit_count.end_fruits([wide], fruits, cfg) == []
+    assert fruit_count.end_fruits([alone], fruits, fruit_count.Config(end_tracks=False)) == []
+    assert fruit_count.end_fruits([alone], fruits, fruit_count.Config(lone_fragment_m=0.0)) == []
+
+
+def test_end_tracks_link_a_fruits_segments_frame_to_frame_in_the_frames_fused_frames_cannot_cover():
+    rng = np.random.default_rng(6)
+    assert ends.end_zones([1, 5, 9, 13], list(range(16))) == [0, 1, 2, 3, 4, 10, 11, 12, 13, 14, 15]
+    assert ends.end_zones([3], list(range(5))) == list(range(5))
+    # a frame between fused frames is placed through the nearest one: the row frame is the odometry's moved
+    odometry = {f: pose_matrix(np.array([0.01 * f, 0, 0, 0, 0, 0, 1.0])) for f in range(10)}
+    shift = pose_matrix(np.array([0.2, -0.1, 0.0, 0.0, 0.0, np.sin(0.05), np.cos(0.05)]))
+    fused = {f: shift @ odometry[f] for f in (2, 6)}
+    assert np.allclose(ends.row_pose(9, fused, odometry), shift @ odometry[9])
+    # two fruits 6 cm apart, each seen from frame 0 on, one missed by the detector in frame 2; a third fruit
+    # enters in frame 3; segments under min_points points are left out
+    a, b, c = [0.0, 0.0, 1.0], [0.06, 0.0, 1.0], [0.3, 0.0, 1.0]
+
+    def seg(centre, n=300):
+        pts = front_cap(rng, centre, 0.03, n)
+        return (2, pts, pts[:, 2], float(n))
+
+    views = [(0, [seg(a), seg(b)]), (1, [seg(b), seg(a), seg(c, n=5)]), (2, [seg(a)]), (3, [seg(a), seg(b), seg(c)])]
+    tracks = ends.link(views, link_m=0.03, min_points=20)
+    assert sorted(t.frames for t in tracks) == [[0, 1, 2, 3], [0, 1, 3], [3]]
+    for t in tracks:
+        assert len({tuple(np.round(np.median(p, 0), 1)) for p in t.points}) == 1   # one fruit per track
+    # a segment farther than link_m from every track, or more than MAX_GAP_FRAMES after it, starts a track
+    late = [(0, [seg(a)]), (0 + ends.MAX_GAP_FRAMES + 1, [seg(a)])]
+    assert [t.frames for t in ends.link(late, 0.03, 20)] == [[0], [ends.MAX_GAP_FRAMES + 1]]
 
 
 def test_a_fruit_wider_than_any_fruit_of_the_crop_is_not_counted():
