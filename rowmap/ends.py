@@ -22,6 +22,9 @@ from rowmap.detections import fruit_segments
 from rowmap.geometry import POSE_COLS, subsample, with_sensor_depth
 from rowmap.scoring import reference_pixels
 
+MIN_SPAN_FRAMES = 3
+"""frames: a track counts only from its first to its last segment spanning at least this many frames; a fruit in
+view for one or two frames at a recording's very end is a glimpse (evaluate leaves such fruits out as well)."""
 MAX_GAP_FRAMES = 2
 """frames: a track takes a segment at most this many frames after its last one (the detector misses a fruit
 in a frame now and then)."""
@@ -37,6 +40,11 @@ class Track:
     classes: list[int] = field(default_factory=list)         # the detector's class per segment
     ref_px: list[float] = field(default_factory=list)        # pixels with depth per segment, as at 320x180
     centre: np.ndarray | None = None                         # [3] the last segment's robust centre
+
+    @property
+    def span(self) -> int:
+        """frames from the first segment to the last, both included."""
+        return self.frames[-1] - self.frames[0] + 1 if self.frames else 0
 
 
 def end_zones(fused: list[int], recorded: list[int]) -> list[int]:

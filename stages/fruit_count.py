@@ -20,7 +20,7 @@ from pipeline.stage import StageContext
 from nerf.surfaces import fit_sphere, plausible_fit, principal_extents, robust_centre, runs_by_key, unproject
 from rowmap.colours import id_colours
 from rowmap.detections import dropped_segments
-from rowmap.ends import Track, end_tracks
+from rowmap.ends import MIN_SPAN_FRAMES, Track, end_tracks
 from rowmap.geometry import subsample, with_sensor_depth
 from rowmap.renders import read_depth
 from rowmap.scoring import reference_pixels
@@ -184,10 +184,10 @@ def lone_fragments(fruits: pd.DataFrame, candidates: list[int], min_distance_m: 
 
 def end_fruits(tracks: list[Track], fruits: pd.DataFrame, cfg: Config) -> list[tuple[Track, dict]]:
     """The end tracks (rowmap.ends) to count as fruits, with measure's result: seen in at least min_count_frames
-    frames, with a plausible surface fit (a fruit's shape), not a fragment by points or pixels, in the near row,
-    not oversize, and apart from every counted fruit of `fruits` and every track taken before (most points
-    first): farther than lone_fragment_m and than the sum of the two radii (two fruits do not overlap; a
-    segment merging two fruits measures wide and lies between them)."""
+    frames over at least MIN_SPAN_FRAMES, with a plausible surface fit (a fruit's shape), not a fragment by
+    points or pixels, in the near row, not oversize, and apart from every counted fruit of `fruits` and every
+    track taken before (most points first): farther than lone_fragment_m and than the sum of the two radii (two
+    fruits do not overlap; a segment merging two fruits measures wide and lies between them)."""
     if not cfg.end_tracks or cfg.lone_fragment_m <= 0:
         return []
     counted = fruits[fruits.counted.astype(bool)]
@@ -195,7 +195,7 @@ def end_fruits(tracks: list[Track], fruits: pd.DataFrame, cfg: Config) -> list[t
                      counted.diameter_m.fillna(0.0).to_numpy(np.float64) / 2))
     out = []
     for t in sorted(tracks, key=lambda t: -sum(map(len, t.points))):
-        if len(set(t.frames)) < cfg.min_count_frames:
+        if len(set(t.frames)) < cfg.min_count_frames or t.span < MIN_SPAN_FRAMES:
             continue
         m = measure(np.concatenate(t.points), cfg)
         shaped = m["diameter_sphere_m"] is not None or m["diameter_spheroid_m"] is not None

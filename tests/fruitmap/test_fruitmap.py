@@ -847,11 +847,12 @@ def test_a_fruit_the_detector_alone_tracks_at_a_recording_end_is_counted_unless_
     alone = end_track(rng, [0.12, 0.0, 1.0], [117, 118, 119])
     at_fruit = end_track(rng, [0.01, 0.0, 1.0], [117, 118, 119])         # fruit 1 itself, tracked again
     once = end_track(rng, [-0.15, 0.0, 1.0], [119])                       # one frame: a stray segment
+    glimpse = end_track(rng, [-0.3, 0.1, 1.0], [118, 119])                # in view for two frames only
     by_fragment = end_track(rng, [0.20, 0.0, 1.0], [0, 1, 2])             # the fragment's fruit, seen enough
     flat = end_track(rng, None, [0, 1, 2], points=np.c_[rng.uniform(-0.03, 0.03, (400, 2)) + [-0.3, 0.0],
                                                          np.full(400, 1.0)])   # a leaf: no fruit shape
     far = end_track(rng, [0.4, 0.0, 2.0], [0, 1, 2])                      # the far row
-    picked = fruit_count.end_fruits([alone, at_fruit, once, by_fragment, flat, far], fruits, cfg)
+    picked = fruit_count.end_fruits([alone, at_fruit, once, glimpse, by_fragment, flat, far], fruits, cfg)
     assert [t for t, _ in picked] == [alone, by_fragment] or [t for t, _ in picked] == [by_fragment, alone]
     m = dict((id(t), m) for t, m in picked)[id(alone)]
     assert np.linalg.norm([m["x_m"] - 0.12, m["y_m"], m["z_m"] - 1.0]) < 0.01 and abs(m["diameter_m"] - 0.07) < 0.01
