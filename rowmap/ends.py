@@ -48,8 +48,8 @@ class Track:
 
 
 def end_zones(fused: list[int], recorded: list[int]) -> list[int]:
-    """The recorded frames whose fruits no two fused frames can both see: those before the second fused frame and
-    after the last but one (every frame with fewer than two fused frames)."""
+    """The recorded frames where a fruit in view can lie in fewer than two fused frames: those before the second
+    fused frame and after the last but one (every frame, with fewer than two fused frames)."""
     fused = sorted(fused)
     if len(fused) < 2:
         return sorted(recorded)
@@ -58,7 +58,7 @@ def end_zones(fused: list[int], recorded: list[int]) -> list[int]:
 
 def row_pose(fid: int, fused_c2w: dict[int, np.ndarray], odometry: dict[int, np.ndarray]) -> np.ndarray:
     """[4, 4] frame `fid`'s camera in the row frame: the nearest fused frame's row-frame pose moved by the
-    odometry between the two (a few frames of odometry drift nothing that matters here)."""
+    odometry between the two (over a few frames the odometry drifts by nothing that matters)."""
     anchor = min(fused_c2w, key=lambda f: (abs(f - fid), f))
     return fused_c2w[anchor] @ np.linalg.inv(odometry[anchor]) @ odometry[fid]
 
