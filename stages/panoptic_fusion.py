@@ -26,8 +26,7 @@ OUTPUTS = ("panoptic_frames", "panoptic", "fruit_slots")
 
 def window_views(inputs: dict, renders: Renders, cfg: Config, ctx: StageContext) -> pd.DataFrame:
     """(window_id, frame_id, offset, c2w) of every rendered validation frame of the fitted windows, in the row
-    frame (align_windows). Failed windows and windows without panoptic renders are skipped with a note; a
-    window with panoptic renders for only some validation frames is an error naming what is missing."""
+    frame. Windows failed or without panoptic renders are skipped with a note; one missing some is an error."""
     wm, wp, windows = inputs["window_metrics"], inputs["window_poses"], inputs["windows"]
     ok = set(wm.loc[wm.status == "ok", "window_id"].astype(int))
     for wid in sorted(set(wm.window_id.astype(int)) - ok):
@@ -45,9 +44,8 @@ def window_views(inputs: dict, renders: Renders, cfg: Config, ctx: StageContext)
         if not all(have):
             f = int(g.frame_id.to_numpy()[~np.asarray(have)][0])
             missing = [k for k in PANOPTIC_KINDS if not renders.has(int(wid), f, k)]
-            raise ImageError(f"window {wid}, validation frame {f}: renders.parquet lists no {'/'.join(missing)} "
-                             f"render while other validation frames of the window have theirs; rerun "
-                             f"`pag nerf_fit --force`")
+            raise ImageError(f"window {wid}, validation frame {f}: renders.parquet lists no {'/'.join(missing)} render "
+                             f"while other validation frames of the window have theirs; rerun `pag nerf_fit --force`")
         rows.append(g)
     if not rows:
         return pd.DataFrame(columns=["window_id", "frame_id", "offset", "c2w"])
@@ -56,8 +54,7 @@ def window_views(inputs: dict, renders: Renders, cfg: Config, ctx: StageContext)
     if cfg.align_windows:
         align = window_alignments(wp[wp.window_id.isin(out.window_id.unique())])
         moved = [align[int(w)] @ c for w, c in zip(out.window_id, out.c2w)]
-        # how far a camera moved (not the transform's translation, which a small rotation about a far origin
-        # makes large)
+        # how far a camera moved, not the transform's translation (large for a small rotation about a far origin)
         ctx.summary["window_alignment_max_m"] = round(max(float(np.linalg.norm(m[:3, 3] - c[:3, 3]))
                                                           for m, c in zip(moved, out.c2w)), 4)
         out["c2w"] = moved
@@ -70,8 +67,7 @@ def intrinsics(fr) -> np.ndarray:
 
 def read_slots(views: pd.DataFrame, frames: pd.DataFrame, renders: Renders, cfg: Config, ctx: StageContext
                ) -> tuple[dict, dict]:
-    """Every rendered frame's slot views ((window, slot) -> {(frame, group): SlotView}) and slot-code map
-    ((window, frame) -> [H, W], 0 = no slot), the renders read and cut into slots on every core."""
+    """Each render's slot views ((window, slot) -> {(frame, group): SlotView}) and codes ((window, frame) -> [H, W])."""
     def read(r) -> tuple:
         wid, fid = int(r.window_id), int(r.frame_id)
         fr = frames.loc[fid]
@@ -90,50 +86,48 @@ def read_slots(views: pd.DataFrame, frames: pd.DataFrame, renders: Renders, cfg:
 
 
 class FrameReader:
-    """Reads one frame's inputs for the fusion: the nearest window's render of it, with its slot codes mapped
-    to row fruits (`lut`), the placing depth and the detector segments."""
+    """One frame's fusion inputs: the nearest window's render with its slots as row fruits, depth, detector."""
 
-    def __init__(self, frames: pd.DataFrame, renders: Renders, by_frame: dict[int, pd.DataFrame], codes: dict,
-                 lut: dict, dropped: dict, ctx: StageContext):
-        self.frames, self.renders, self.by_frame, self.codes = frames, renders, by_frame, codes
+    def __init__(self, frames: pd.DataFrame, renders: Renders, nearest: pd.DataFrame, codes: dict, lut: dict,
+                 dropped: dict, ctx: StageContext):
+        self.frames, self.renders, self.nearest, self.codes = frames, renders, nearest, codes
         self.lut, self.dropped, self.ctx = lut, dropped, ctx
 
     def render(self, fid: int, kind: str) -> np.ndarray:
-        fr, w = self.frames.loc[fid], int(self.by_frame[fid].window_id.iloc[0])
-        return self.renders.read(w, fid, kind, (int(fr.height), int(fr.width)))
+        fr = self.frames.loc[fid]
+        return self.renders.read(int(self.nearest.window_id[fid]), fid, kind, (int(fr.height), int(fr.width)))
 
     def frame(self, fid: int) -> Frame:
-        fr, r = self.frames.loc[fid], self.by_frame[fid].iloc[0]
-        codes = self.codes[(int(r.window_id), fid)]
-        thing = codes != 0
-        keys = np.unique(codes[thing])
-        mapped = np.array([self.lut[(int(r.window_id), fid)].get(int(c), 0) for c in keys], np.int64)
-        label = np.zeros(codes.shape, np.int64)   # row fruit id; 0 stuff, -1 a dropped slot
-        label[thing] = np.where(mapped == 0, -1, mapped)[np.searchsorted(keys, codes[thing])]
+        fr, wid = self.frames.loc[fid], int(self.nearest.window_id[fid])
+        codes = self.codes[(wid, fid)]
+        keys, at = np.unique(codes, return_inverse=True)
+        fruit = np.array([self.lut[(wid, fid)].get(int(c), 0) for c in keys], np.int64)
+        fruit[(fruit == 0) & (keys != 0)] = -1
+        label = fruit[at.reshape(codes.shape)]   # row fruit id; 0 stuff, -1 a dropped slot
         depth = with_sensor_depth(self.render(fid, "depth"), self.ctx.abspath(fr.depth_path), fr.depth_scale_m)
         return Frame(fid, label, depth, fruit_segments(fr, self.ctx.data_root, self.dropped.get(fid)), intrinsics(fr),
-                     r.c2w)
+                     self.nearest.c2w[fid])
 
 
 def write_frame(fid: int, fused: np.ndarray, models, reader: FrameReader, n_windows: int, out_dir: Path,
                 ctx: StageContext) -> dict:
     """Write one fused frame's PNGs; its panoptic_frames row."""
-    fr, r = reader.frames.loc[fid], reader.by_frame[fid].iloc[0]
-    sem_r = reader.render(fid, "semantic")
+    fr, r = reader.frames.loc[fid], reader.nearest.loc[fid]
     classes = np.zeros(max(models, default=0) + 1, np.uint8)
     classes[list(models)] = [m.class_id for m in models.values()]
     label = np.maximum(fused, 0)
+    sem_r = reader.render(fid, "semantic")
     stuff = np.where(np.isin(sem_r, THING_IDS), 0, sem_r)     # a thing pixel given no fruit is background
     sem = np.where(fused < 0, VOID, np.where(label > 0, classes[label], stuff))
     name = f"{fid:06d}.png"
     write_png(out_dir / "semantic" / name, sem.astype(np.uint8))
     write_png(out_dir / "instance" / name, label.astype(np.uint16))
-    return {"frame_id": fid, "stamp_ns": int(fr.stamp_ns), "window_id": int(r.window_id), "offset": int(r.offset),
+    wid = int(r.window_id)
+    return {"frame_id": fid, "stamp_ns": int(fr.stamp_ns), "window_id": wid, "offset": int(r.offset),
             "n_windows": n_windows, "semantic_path": ctx.relpath("panoptic", f"semantic/{name}"),
             "instance_path": ctx.relpath("panoptic", f"instance/{name}"),
-            "rgb_path": reader.renders.relpath(int(r.window_id), fid, "rgb"),
-            "depth_path": reader.renders.relpath(int(r.window_id), fid, "depth"),
-            "n_fruits": int(len(np.unique(label[label > 0]))),
+            "rgb_path": reader.renders.relpath(wid, fid, "rgb"), "n_fruits": int(len(np.unique(label[label > 0]))),
+            "depth_path": reader.renders.relpath(wid, fid, "depth"),
             **dict(zip(POSE_COLS, pose_txyzq(r.c2w[None])[0].tolist()))}
 
 
@@ -158,12 +152,12 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
     local, groups = row_fruits(per_slot, {key: c for key, c in codes.items() if key[1] in shared}, cfg)
     if len(groups) > 65535:
         raise ValueError(f"panoptic_fusion: {len(groups)} fruits do not fit 16-bit instance PNGs (max 65535)")
-    pick = views.assign(abs_off=views.offset.abs()).sort_values(["frame_id", "abs_off", "window_id"])
-    by_frame = {int(f): g for f, g in pick.groupby("frame_id", sort=True)}
-    reader = FrameReader(frames, renders, by_frame, codes, slot_table(local),
+    nearest = (views.assign(abs_off=views.offset.abs()).sort_values(["frame_id", "abs_off", "window_id"])
+               .drop_duplicates("frame_id").set_index("frame_id"))   # each frame's window nearest its centre
+    reader = FrameReader(frames, renders, nearest, codes, slot_table(local),
                          dropped_segments(inputs.get("detections_filtered")), ctx)
     rows, models = [], fit_models(groups, local, per_slot, cfg)
-    for fid, fused, models in fuse(sorted(by_frame), reader.frame, models, cfg, ctx.progress):
+    for fid, fused, models in fuse(nearest.index.astype(int).tolist(), reader.frame, models, cfg, ctx.progress):
         rows.append(write_frame(fid, fused, models, reader, int(n_win[fid]), out_dir, ctx))
     ctx.count("slots", len(local))
     ctx.count("slots_dropped", sum(lf.fruit_id == 0 for lf in local))

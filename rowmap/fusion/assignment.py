@@ -2,9 +2,8 @@
 
     cost[p, o] = sum over terms t of WEIGHTS[t] * term_t[p, o]        (each term in [0, 1])
 
-then the fruit models are refitted from what they were given and every frame is assigned again. The models
-change only between rounds, so a round's frames are worked on by several threads; they come back in frame
-order, so the output does not depend on the thread count. docs/fusion.md has the table of the terms."""
+then the models are refitted from what they were given and every frame is assigned again. The models change
+only between rounds, so a round's frames run in threads; they come back in frame order, whatever the count."""
 from __future__ import annotations
 
 from collections import defaultdict
@@ -31,7 +30,7 @@ weights, between render and render + SHAPE_INSIDE: that fruit takes the pixel, b
 TILE_PX = 64
 """pixels of a 320x180 image (scaled with the image): the side of the square tiles a frame is assigned in."""
 FAR_LOSES = WEIGHTS["shape"] * (1 - SHAPE_INSIDE) > WEIGHTS["detector"]
-"""whether a candidate outside its halo ball always costs more than background (what `tiles` relies on)."""
+"""whether a candidate outside its halo ball always costs more than background (what `tiles` needs)."""
 
 
 def terms(ev: Evidence, cfg: Config) -> dict[str, np.ndarray]:
@@ -63,12 +62,10 @@ def cost(ev: Evidence, cfg: Config) -> np.ndarray:
 
 
 def tiles(ev: Evidence, shape: tuple[int, int], models: FruitModels, cfg: Config) -> Iterator[tuple]:
-    """(rows, cols) per square tile of the frame: its evidence pixels and the candidates that can win one of
-    them: those without a sphere, those whose halo box (ev.boxes) meets the tile, and those the render or the
-    detector names there. Any other candidate lies outside its halo ball at every pixel of the tile, so its
-    shape term is 1 and it costs more than background (by at least shape x (1 - SHAPE_INSIDE) - detector
-    weight, FAR_LOSES): the tiles give the ids every pixel against every candidate gives. One tile with shape
-    off."""
+    """(rows, cols) per square tile: its evidence pixels and the candidates that can win one: those without a
+    sphere, whose halo box meets the tile, or that the render or the detector names there. Any other lies outside
+    its halo ball, so it costs more than background (FAR_LOSES): the tiles give the ids every pixel against every
+    candidate gives. One tile with shape off."""
     h, w = shape
     if "shape" in cfg.terms_off or not FAR_LOSES or not len(ev.pixels):
         yield np.arange(len(ev.pixels)), np.arange(len(ev.ids))
@@ -78,7 +75,7 @@ def tiles(ev: Evidence, shape: tuple[int, int], models: FruitModels, cfg: Config
     v, u = np.divmod(ev.pixels, w)
     tile = (v // side) * per_row + u // side
     col = {int(f): j for j, f in enumerate(ev.ids)}
-    everywhere = [j for j, f in enumerate(ev.ids) if models.get(int(f)) is None or models[int(f)].centre is None]
+    everywhere = [j for j, f in enumerate(ev.ids) if models[int(f)].centre is None]
     boxes = [(col[f], b) for f, b in (ev.boxes or {}).items() if f in col]
     order = np.argsort(tile, kind="stable")
     keys, starts = np.unique(tile[order], return_index=True)
@@ -91,9 +88,7 @@ def tiles(ev: Evidence, shape: tuple[int, int], models: FruitModels, cfg: Config
 
 def fused_label(frame: Frame, models: FruitModels, owners: dict, cfg: Config
                 ) -> tuple[np.ndarray, Evidence, np.ndarray]:
-    """([H, W] fused fruit ids of one frame: 0 = background, -1 = void where the render had a dropped slot and
-    the pixel stays background; the evidence (pixel_evidence); [P] the id each evidence pixel takes, the argmin
-    of `cost`, found tile by tile (tiles))."""
+    """One frame's fused ids [H, W] (-1: a dropped slot left background), its evidence, and its pixels' ids [P]."""
     ev = pixel_evidence(frame, models, owners, cfg)
     ids = np.zeros(len(ev.pixels), np.int64)
     for rows, cols in tiles(ev, frame.label.shape, models, cfg):
@@ -102,15 +97,13 @@ def fused_label(frame: Frame, models: FruitModels, owners: dict, cfg: Config
         c[np.arange(len(c)), part.render] -= 1e-6   # ties go to the render's option
         ids[rows] = np.r_[0, part.ids][c.argmin(1)]
     out = frame.label.copy()
-    was = out.ravel()[ev.pixels]
-    out.ravel()[ev.pixels] = np.where((ids == 0) & (was < 0), -1, ids)
+    out.ravel()[ev.pixels] = np.where((ids == 0) & (out.ravel()[ev.pixels] < 0), -1, ids)
     return out, ev, ids
 
 
 def round_views(frame: Frame, models: FruitModels, owners: dict, cfg: Config) -> tuple[list, list]:
-    """What one frame gives the refit: [(fruit, its pixels' points)] and [(fruit, (frame, segment, pixels,
-    centre [3], points, camera centre [3]))] of the detector segments lying mostly on fruits, each given to the
-    fruit holding most of it (at least min_group_px of its pixels)."""
+    """What one frame gives the refit: [(fruit, its pixels' points)] and [(fruit, (frame, segment, pixels, centre
+    [3], points, camera centre [3]))] of the segments lying mostly on fruits, each to the fruit holding most."""
     _, ev, ids = fused_label(frame, models, owners, cfg)
     given, segs, taken = [], [], set()
     fruit_px = np.flatnonzero(ids > 0)
@@ -139,9 +132,8 @@ def round_views(frame: Frame, models: FruitModels, owners: dict, cfg: Config) ->
 def fuse(frame_ids: Iterable[int], load: Callable[[int], Frame], models: FruitModels, cfg: Config,
          progress: Callable = lambda it, label, total: it, threads: int = 0
          ) -> Iterator[tuple[int, np.ndarray, FruitModels]]:
-    """(frame id, fused label [H, W], the final models) per frame of the last round, in frame order; each round
-    before it refits the models (models.update) with what round_views collects. `threads`: frames at once (0 =
-    every core); `load` must be thread-safe."""
+    """(frame id, fused label [H, W], the final models) per frame, in frame order, after `refine_rounds` rounds.
+    `threads`: frames at once (0 = every core); `load` must be thread-safe."""
     frame_ids, owners, threads = list(frame_ids), {}, threads or available_cores()
     for r in range(cfg.refine_rounds):
         given: dict[int, list[np.ndarray]] = defaultdict(list)

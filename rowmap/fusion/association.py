@@ -1,6 +1,5 @@
-"""Association: window slots -> local fruits (a slot's pixel groups that lie together) -> row fruits (local
-fruits of different windows with close centres and overlapping masks: Hungarian per window pair, then
-union-find)."""
+"""Association: window slots -> local fruits (a slot's pixel groups that lie together) -> row fruits (local fruits
+of different windows with close centres and overlapping masks: Hungarian per window pair, then union-find)."""
 from __future__ import annotations
 
 from collections import defaultdict
@@ -20,18 +19,19 @@ from rowmap.geometry import pixel_groups, sphere_behind, subsample
 MAX_GROUPS = 256
 """pixel groups one slot can split into in one frame (further groups stay with the largest)."""
 MIN_GROUP_PX = 50
-"""pixels of a 320x180 image (min_group_px scales it by area): a smaller group stays with its slot's largest."""
+"""pixels at 320x180 (scaled by area): a smaller group stays with its slot's largest."""
 MIN_SLOT_PX = 4
 """pixels over all frames: a smaller slot is dropped (its pixels become void)."""
 MAX_POINTS = 400
 """points kept per slot group and frame (evenly subsampled)."""
 MIN_SPLIT_FRAMES = 2
 """frames: a cluster of a slot's (or a fruit's detector) centres seen in fewer is no fruit of its own."""
+MIN_SPHERE_POINTS = 20
+"""points: fewer fit no sphere."""
 
 
 def min_group_px(shape: tuple[int, ...]) -> int:
-    """MIN_GROUP_PX for images of `shape` (H, W, ...), the same share of the image at every size (renders at a
-    working scale are stored at full size). Example: (720, 1280) -> 800."""
+    """MIN_GROUP_PX for images of `shape` (H, W, ...): the same share at every size, (720, 1280) -> 800."""
     return int(round(MIN_GROUP_PX * max(1.0, shape[0] * shape[1] / BASE_PIXELS)))
 
 
@@ -69,17 +69,22 @@ class LocalFruit:
     @cached_property
     def codes(self) -> dict[int, set[int]]:
         """frame -> the slot codes of this fruit's pixel groups there."""
-        out: dict[int, set[int]] = defaultdict(set)
-        for f, g in self.frames:
-            out[f].add(int(code(self.slot, g)))
-        return dict(out)
+        return frame_codes([self])
+
+
+def frame_codes(lfs: list[LocalFruit]) -> dict[int, set[int]]:
+    """frame -> the slot codes of the local fruits' pixel groups there."""
+    out: dict[int, set[int]] = defaultdict(set)
+    for lf in lfs:
+        for f, g in lf.frames:
+            out[f].add(int(code(lf.slot, g)))
+    return dict(out)
 
 
 def slot_views(sem: np.ndarray, inst: np.ndarray, depth: np.ndarray, sensor: np.ndarray, k: np.ndarray,
                c2w: np.ndarray, thing_ids: list[int], cfg: Config) -> tuple[dict, np.ndarray]:
-    """The slot views of one rendered frame ({(slot, group): SlotView}) and its slot-code map [H, W] (code of
-    the pixel's slot and group; 0 = no slot; uint16 where the codes fit, as a row holds every frame's map).
-    `sensor`: the recorded z-depth in m (0 = none)."""
+    """One rendered frame's slot views ({(slot, group): SlotView}) and slot-code map [H, W] (0 = no slot; uint16
+    where the codes fit: a row holds every frame's map). `sensor`: the recorded z-depth in m (0 = none)."""
     thing = np.isin(sem, thing_ids) & (inst > 0)
     group, out = np.zeros(inst.shape, np.int32), {}
     v, u, ids, starts, ends = runs_by_key(*np.nonzero(thing), inst[thing])
@@ -121,9 +126,8 @@ def split_frames(frame_centres: dict, dist_m: float, min_frames: int = 1) -> lis
 
 
 def local_fruits(views: dict[tuple[int, int], dict], cfg: Config) -> list[LocalFruit]:
-    """Local fruits of every window's slots (`views`: (window, slot) -> {(frame, group): SlotView}), each with a
-    centre: the sphere fitted to its seen surface, or a sphere of the row's median radius behind the seen cap
-    where the free fit is no fruit, or the median of its points."""
+    """Local fruits of every window's slots (`views`: (window, slot) -> {(frame, group): SlotView}), centred on
+    their fitted sphere, else one of the row's median radius behind the seen cap, else their points' median."""
     local, unfitted, radii = [], [], []
     for (wid, slot), per_frame in sorted(views.items()):
         centres = {f: (np.median(sv.points, 0) if len(sv.points) else None) for f, sv in per_frame.items()}
@@ -136,7 +140,7 @@ def local_fruits(views: dict[tuple[int, int], dict], cfg: Config) -> list[LocalF
                 lf.drop_reason = f"{n_px} px < {MIN_SLOT_PX}"
             elif len(pts) == 0:
                 lf.drop_reason = "no pixel with valid rendered depth"
-            elif (fit := fruit_sphere(pts, cfg.max_fruit_radius_m, min_points=20)) is not None:
+            elif (fit := fruit_sphere(pts, cfg.max_fruit_radius_m, min_points=MIN_SPHERE_POINTS)) is not None:
                 lf.centre, lf.median = fit[0], fit[2]
                 radii.append(fit[1])
             else:
@@ -144,7 +148,7 @@ def local_fruits(views: dict[tuple[int, int], dict], cfg: Config) -> list[LocalF
                 unfitted.append((lf, pts, np.average([sv.eye for sv in svs], 0, [len(sv.points) + 1e-9 for sv in svs])))
             local.append(lf)
     for lf, pts, eye in unfitted if radii else []:
-        c = sphere_behind(pts, eye, float(np.median(radii)), min_points=20)
+        c = sphere_behind(pts, eye, float(np.median(radii)), min_points=MIN_SPHERE_POINTS)
         lf.centre = lf.centre if c is None else c
     return local
 
@@ -156,8 +160,7 @@ def centre_distance(a: LocalFruit, b: LocalFruit) -> float:
 
 
 class MaskOverlaps:
-    """Slot-code maps of frames several windows rendered ({(window, frame): [H, W]}) as joint histograms per
-    (window pair, frame): every mask overlap is a sum over a few histogram entries."""
+    """The slot-code maps of frames several windows rendered ({(window, frame): [H, W]}) as pairwise histograms."""
 
     def __init__(self, masks: dict[tuple[int, int], np.ndarray]):
         self.masks, self._joint = masks, {}
@@ -165,9 +168,6 @@ class MaskOverlaps:
         for f in sorted({f for _, f in masks}):
             for pair in combinations(sorted(w for w, g in masks if g == f), 2):
                 self.shared[pair].append(f)
-
-    def frames(self, wa: int, wb: int) -> list[int]:
-        return self.shared.get((min(wa, wb), max(wa, wb)), [])
 
     def joint(self, wa: int, wb: int, f: int) -> list[tuple[int, int, int]]:
         """(code in wa, code in wb, pixels) over frame f's pixels where either window has a slot."""
@@ -183,7 +183,7 @@ class MaskOverlaps:
     def overlap(self, wa: int, codes_a: dict, wb: int, codes_b: dict) -> tuple[int, int]:
         """(intersection, union) pixels of two windows' masks ({frame: codes}) over the frames both rendered."""
         inter = union = 0
-        for f in self.frames(wa, wb):
+        for f in self.shared.get((min(wa, wb), max(wa, wb)), []):
             ca, cb = codes_a.get(f, ()), codes_b.get(f, ())
             for x, y, n in self.joint(wa, wb, f):
                 union += n * (x in ca or y in cb)
@@ -207,15 +207,6 @@ class MaskOverlaps:
         return on, total
 
 
-def frame_codes(lfs: list[LocalFruit]) -> dict[int, set[int]]:
-    """frame -> the slot codes of the local fruits' pixel groups there."""
-    out: dict[int, set[int]] = defaultdict(set)
-    for lf in lfs:
-        for f, cs in lf.codes.items():
-            out[f] |= cs
-    return out
-
-
 MAX_PAIR_COST = 1.5
 """the largest pair_cost of a match: that of two centres max_match_distance_m apart without a shared frame."""
 MAX_PAIR_REACH = 4.0
@@ -223,12 +214,10 @@ MAX_PAIR_REACH = 4.0
 
 
 def pair_cost(a: LocalFruit, b: LocalFruit, overlaps: MaskOverlaps, cfg: Config) -> float:
-    """The cost of two windows' local fruits being one fruit, d = centre distance / max_match_distance_m:
-    (1 - mask IoU) x (1 + d) where both windows rendered frames of them, 0.5 + d where they share no frame; inf
-    over MAX_PAIR_COST, past MAX_PAIR_REACH or under min_mask_iou. On shared frames the masks are the evidence
-    and the distance counts as much as they disagree: a window that saw a fruit only at its image border can
-    place its centre several cm off while painting the same pixels as the other window."""
-    dist = np.inf if a.centre is None or b.centre is None else centre_distance(a, b)
+    """The cost of two windows' local fruits being one, d = centre distance / max_match_distance_m: (1 - mask IoU)
+    x (1 + d) on shared frames, 0.5 + d without; inf over MAX_PAIR_COST, past MAX_PAIR_REACH or under min_mask_iou.
+    Where masks agree, distance matters little: a window that saw a fruit at its image border can place it cm off."""
+    dist = centre_distance(a, b)
     if dist > MAX_PAIR_REACH * cfg.max_match_distance_m:
         return np.inf
     inter, union = overlaps.overlap(a.window_id, a.codes, b.window_id, b.codes)
@@ -261,11 +250,10 @@ def candidate_pairs(fruits: list[LocalFruit], overlaps: MaskOverlaps, cfg: Confi
 
 
 def associate(fruits: list[LocalFruit], masks: dict[tuple[int, int], np.ndarray], cfg: Config) -> list[list[int]]:
-    """Groups of local-fruit indices that are one row fruit: candidate_pairs merged cheapest first where no two
-    local fruits of one window share a frame or lie apart, and every two windows' masks of the group overlap by
-    min_mask_iou. A fruit left alone whose mask lies mostly on one group's masks, its sphere centre within
-    max_match_distance_m of one of theirs, joins it: a second slot its window painted on that fruit (sphere
-    centres only: the join has no mask check between windows, so not the points' medians a pair may use)."""
+    """Groups of local-fruit indices that are one row fruit: candidate_pairs merged cheapest first while no two of
+    one window share a frame or lie apart and every two windows' masks overlap by min_mask_iou. A fruit left alone
+    whose mask lies mostly on one group's, its sphere centre within max_match_distance_m of one of theirs, joins
+    it: a second slot its window painted on that fruit (centres only, not medians: this join checks no masks)."""
     overlaps = MaskOverlaps(masks)
     members = {i: [i] for i in range(len(fruits))}
     root = list(range(len(fruits)))
@@ -291,28 +279,26 @@ def associate(fruits: list[LocalFruit], masks: dict[tuple[int, int], np.ndarray]
     for _, i, j in sorted(candidate_pairs(fruits, overlaps, cfg)):
         if root[i] != root[j] and compatible(members[root[i]], members[root[j]]):
             join(root[i], root[j])
-    owner = {(lf.window_id, f, c): k for k, lf in enumerate(fruits) for f, cs in lf.codes.items() for c in cs}
+    owner = {(lf.window_id, f, c): k for k, lf in enumerate(fruits) if lf.centre is not None
+             for f, cs in lf.codes.items() for c in cs}
     for i, lf in enumerate(fruits):
         if lf.centre is None or len(members.get(i, ())) != 1:
             continue
         under, total = overlaps.under(lf, owner)
         on = defaultdict(int)     # group root -> pixels of this fruit's mask on its masks
         for k, n in under.items():
-            if fruits[k].centre is not None:
-                on[root[k]] += n
+            on[root[k]] += n
         if on:
             r, n_on = max(on.items(), key=lambda kv: kv[1])
             gap = min(float(np.linalg.norm(lf.centre - fruits[k].centre)) for k in members[r])
             if n_on >= total / 2 and gap <= cfg.max_match_distance_m:
                 join(r, i)
-    return [[i for i in g if fruits[i].centre is not None] for g in members.values()
-            if any(fruits[i].centre is not None for i in g)]
+    return [g for g in members.values() if fruits[g[0]].centre is not None]   # a fruit without a centre stays alone
 
 
 def row_fruits(views: dict[tuple[int, int], dict], masks: dict[tuple[int, int], np.ndarray], cfg: Config
                ) -> tuple[list[LocalFruit], list[list[int]]]:
-    """Local fruits (local_fruits) and the groups of them that are one row fruit (associate), each local fruit
-    given its row fruit's id: ids increase along the row (x, then z, then y)."""
+    """Local fruits and their groups that are one row fruit, each given its fruit's id (along the row: x, z, y)."""
     local = local_fruits(views, cfg)
     groups = associate(local, masks, cfg)
     centre = [np.median(np.stack([local[i].centre for i in g]), 0) for g in groups]

@@ -1,5 +1,4 @@
-"""Per-frame evidence: for each pixel and each candidate fruit, what the render, the detector and the fruit
-models say. The assignment (rowmap.fusion.assignment) turns it into one id per pixel."""
+"""Per-frame evidence: for each pixel and candidate fruit, what the render, the detector and the fruit models say."""
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -12,10 +11,10 @@ from rowmap.fusion.models import FruitModels
 from rowmap.fusion.settings import Config
 
 BORDER_BAND_PX = 8
-"""pixels of a 320x180 image (scaled with the image): the band along the image edges where the render is
-weakest (a fruit entering the view is painted as leaf or as its neighbour)."""
+"""pixels at 320x180 (scaled with the image): the edge band where the render is weakest (a fruit entering the
+view is painted as leaf or as its neighbour)."""
 BORDER_CONFIDENCE = 0.4
-"""[0, 1]: the render's confidence in the border band."""
+"""[0, 1]: the render's confidence in the border band (1 elsewhere)."""
 
 
 @dataclass
@@ -32,8 +31,8 @@ class Frame:
 
 @dataclass
 class Evidence:
-    """What decides the pixels of one frame: P pixels (those with a depth that a fruit could take), F
-    candidate fruits (column 0 of every [P, F + 1] option array is background)."""
+    """What decides the pixels of one frame: P pixels (those a fruit could take), F candidate fruits (column 0 of
+    every [P, F + 1] option array is background). The model distances are filled in by `part`."""
 
     pixels: np.ndarray      # [P] flat indices into the frame
     ids: np.ndarray         # [F] candidate fruit ids
@@ -46,12 +45,11 @@ class Evidence:
     beyond: np.ndarray | None = None   # [P, F] m beyond the sphere's centre along the pixel's ray (nan: no sphere)
     gap: np.ndarray | None = None      # [P, F] m to the fruit's seen surface (inf: farther than margin_m)
     radius: np.ndarray | None = None   # [F] m (nan: no sphere)
-    boxes: dict | None = None          # {fruit id: image box (v0, v1, u0, u1) of its halo ball} (FruitModels.in_view)
+    boxes: dict | None = None          # {fruit id: image box (v0, v1, u0, u1) of its halo ball}
 
     def part(self, rows: np.ndarray, cols: np.ndarray, models: FruitModels, eye: np.ndarray, cfg: Config
              ) -> "Evidence":
-        """The evidence of pixels `rows` (indices) against candidates `cols` (indices into ids, ascending), with
-        the fruit models' distances (FruitModels.query); a render or detector option outside `cols` becomes 0."""
+        """Pixels `rows` against candidates `cols` (ascending) with the models' distances; other options -> 0."""
         ids, points = self.ids[cols], self.points[rows]
         option = np.zeros(len(self.ids) + 1, np.int64)    # option here of each option of the whole frame
         option[np.asarray(cols, np.int64) + 1] = np.arange(1, len(cols) + 1)
@@ -63,17 +61,15 @@ class Evidence:
 
 
 def frame_evidence(frame: Frame, models: FruitModels, owners: dict[tuple[int, int], int], cfg: Config) -> Evidence:
-    """The evidence of one frame, every pixel against every candidate (pixel_evidence, then Evidence.part)."""
+    """The evidence of one frame, every pixel against every candidate."""
     ev = pixel_evidence(frame, models, owners, cfg)
     return ev.part(np.arange(len(ev.pixels)), np.arange(len(ev.ids)), models, frame.c2w[:3, 3], cfg)
 
 
 def pixel_evidence(frame: Frame, models: FruitModels, owners: dict[tuple[int, int], int], cfg: Config) -> Evidence:
-    """The evidence of one frame but the fruit models' distances. Candidates: the fruits the render paints and
-    those whose halo is in view. A detector segment's fruit: `owners` ((frame, segment) -> fruit, from a split),
-    else the fruit the render paints on most of it, unless it paints more of it as background: then none (the
-    segment says some fruit is there; the fruit models say which). The render's confidence is BORDER_CONFIDENCE
-    in the border band, else 1."""
+    """One frame's evidence but the models' distances, for the fruits the render paints and those whose halo is in
+    view. A segment's fruit: `owners`' ((frame, segment) -> fruit, after a split), else the one painted on most of
+    it; none where that is background (the segment says some fruit is there; the fruit models say which)."""
     h, w = frame.label.shape
     boxes = models.in_view((h, w), frame.k, frame.c2w, cfg)
     ids = np.array(sorted(set(np.unique(frame.label[frame.label > 0]).tolist()) | set(boxes)), np.int64)
@@ -86,23 +82,20 @@ def pixel_evidence(frame: Frame, models: FruitModels, owners: dict[tuple[int, in
         near = np.linalg.norm(p - models[f].centre, axis=1) <= models[f].radius * cfg.halo_factor + cfg.margin_m
         keep[bv[near] + v0, bu[near] + u0] = True
     v, u = np.nonzero(keep)
-    points = unproject(frame.depth, frame.k, frame.c2w, v, u)
     on, n_lab = (frame.label >= 0) & (seg > 0), int(frame.label.max()) + 1
     owner = np.zeros(int(seg.max()) + 1, np.int64)   # segment -> what is painted on most of it (0: background)
-    if on.any():
-        keys, n = np.unique(seg[on] * n_lab + frame.label[on], return_counts=True)
-        order = np.argsort(n, kind="stable")   # the largest pair of each segment written last
-        owner[keys[order] // n_lab] = keys[order] % n_lab
+    keys, n = np.unique(seg[on] * n_lab + frame.label[on], return_counts=True)
+    order = np.argsort(n, kind="stable")   # the largest pair of each segment written last
+    owner[keys[order] // n_lab] = keys[order] % n_lab
     for (f, s), g in owners.items():
         if f == frame.frame_id and s < len(owner):
             owner[s] = g
-    column = np.zeros(max(int(ids.max(initial=0)), int(frame.label.max()), int(owner.max())) + 1, np.int64)
+    column = np.zeros(max(int(ids.max(initial=0)), int(owner.max())) + 1, np.int64)
     column[ids] = np.arange(1, len(ids) + 1)   # fruit id -> its option (0: not a candidate)
-    render = column[np.maximum(frame.label[v, u], 0)]
     segment = seg[v, u]
-    detector = np.where(segment > 0, column[owner[segment]], -1)
-    scale = max(1.0, h * w / BASE_PIXELS)   # image pixels per reference pixel
-    band = int(np.ceil(BORDER_BAND_PX * np.sqrt(scale)))
+    band = int(np.ceil(BORDER_BAND_PX * np.sqrt(max(1.0, h * w / BASE_PIXELS))))
     border = (v < band) | (v >= h - band) | (u < band) | (u >= w - band)
-    confidence = np.where(border, BORDER_CONFIDENCE, 1.0)
-    return Evidence(v * w + u, ids, points, render, confidence, detector, segment, boxes=boxes)
+    return Evidence(pixels=v * w + u, ids=ids, points=unproject(frame.depth, frame.k, frame.c2w, v, u),
+                    render=column[np.maximum(frame.label[v, u], 0)],
+                    confidence=np.where(border, BORDER_CONFIDENCE, 1.0),
+                    detector=np.where(segment > 0, column[owner[segment]], -1), segment=segment, boxes=boxes)

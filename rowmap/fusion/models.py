@@ -1,5 +1,5 @@
-"""Fruit models: per row fruit its sphere and its seen surface. `fit_models` builds them from the association,
-`FruitModels.query` answers for the 3D points of one frame (the evidence), `update` refits them after a round."""
+"""Fruit models, per row fruit its sphere and seen surface: built by `fit_models` from the association, asked by
+the evidence through `FruitModels.query`, refitted by `update` after a round."""
 from __future__ import annotations
 
 from collections import defaultdict
@@ -12,18 +12,15 @@ from scipy.spatial import cKDTree
 
 from nerf.panoptic.complete import sphere_boxes
 from nerf.surfaces import fruit_sphere
-from rowmap.fusion.association import MIN_SPLIT_FRAMES, LocalFruit
+from rowmap.fusion.association import MIN_SPHERE_POINTS, MIN_SPLIT_FRAMES, LocalFruit
 from rowmap.fusion.settings import Config
 from rowmap.geometry import sphere_behind, subsample
 
-MIN_SPHERE_POINTS = 20
-"""points: fewer fit no sphere."""
 MAX_FIT_POINTS = 3000
 """points a sphere is fitted to (evenly subsampled)."""
 TWO_FRUITS_APART = 1.5
-"""multiple of the row's typical fruit radius: two clusters of one fruit's detector segments seen in one frame
-whose centres lie farther apart are two fruits (the pieces of one fruit that a leaf cuts apart lie at most about
-1.3 radii apart, a sliver at its rim and the rest)."""
+"""multiple of the row's typical radius: two clusters of a fruit's detector segments seen in one frame farther
+apart are two fruits (a leaf cuts one fruit into pieces at most about 1.3 radii apart)."""
 
 
 @dataclass
@@ -37,9 +34,8 @@ class FruitModel:
     surface: cKDTree | None = None     # the points inside the sphere, one per margin_m / 2 cube
 
     def refit(self, cfg: Config, behind: tuple[np.ndarray, float] | None = None) -> "FruitModel":
-        """Fit the sphere to the points (the one it has is kept where none fits) and the seen surface to the points
-        inside it. `behind` (camera centre [3], radius in m): where the free fit is no fruit (a shallow cap), a
-        sphere of that radius behind the cap as seen from that camera."""
+        """Fit the sphere to the points (keeping the old one where none fits), the seen surface to those inside it.
+        `behind` (camera centre [3], radius m): where the free fit fails (a shallow cap), that sphere behind it."""
         fit = None
         if len(self.points) >= MIN_SPHERE_POINTS:
             pts = self.points[subsample(len(self.points), MAX_FIT_POINTS)]
@@ -62,7 +58,7 @@ def dot3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 class FruitModels(dict):
-    """{fruit id: FruitModel}, with the query one frame's evidence needs."""
+    """{fruit id: FruitModel}, with the queries one frame's evidence needs."""
 
     typical_radius: float = np.nan
     """m: the median radius of the fitted spheres of the row (fit_models)."""
@@ -79,9 +75,7 @@ class FruitModels(dict):
 
     def query(self, ids: list[int], points: np.ndarray, eye: np.ndarray, margin_m: float
               ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """For points [P, 3] seen from `eye` and fruits `ids` [F]: (distance to the sphere's centre / radius,
-        distance beyond the centre along the point's ray in m, distance to the seen surface in m), each [P, F],
-        and the radii [F]; nan where a fruit has no sphere, inf where the surface is farther than margin_m."""
+        """Points [P, 3] seen from `eye` against fruits `ids`: Evidence's rel, beyond, gap [P, F] and radius [F]."""
         centres = np.array([self[f].centre if self[f].centre is not None else [np.nan] * 3 for f in ids]).reshape(-1, 3)
         radii = np.array([self[f].radius for f in ids], np.float64)
         sq = (points ** 2).sum(1)[:, None] - 2 * dot3(points, centres) + (centres ** 2).sum(1)[None]
@@ -98,9 +92,8 @@ class FruitModels(dict):
 
 
 def fit_models(groups: list[list[int]], local: list[LocalFruit], views: dict, cfg: Config) -> FruitModels:
-    """The model of each row fruit (`groups` of `local` fruits; `views` their slot views): its views' rendered
-    points, moved by the median render -> sensor offset where that exceeds what the halo tolerates
-    ((halo_factor - 1) x radius + margin_m; a window that saw a fruit in few frames can render it cm off)."""
+    """Each row fruit's model (`groups` of `local` fruits, `views` their slot views), fitted to its rendered points,
+    moved by their median sensor offset where that exceeds the halo (a window can render a fruit cm off)."""
     out = FruitModels()
     for g in groups:
         svs = [views[(local[i].window_id, local[i].slot)][key] for i in g for key in local[i].frames]
@@ -120,14 +113,13 @@ def fit_models(groups: list[list[int]], local: list[LocalFruit], views: dict, cf
     return out
 
 
-def detector_clusters(views: list[tuple], ball: tuple | None, typical_radius: float, cfg: Config
+def detector_clusters(views: list[tuple], model: FruitModel, typical_radius: float, cfg: Config
                       ) -> tuple[np.ndarray, list[np.ndarray]]:
-    """The fruits one row fruit holds by its detector segments `views` ((frame, segment, pixels, centre [3],
-    points, camera centre [3]) each). Centres closer than detector_split_m link; two clusters are two fruits
-    where they are seen together in MIN_SPLIT_FRAMES frames, where they share a frame and their centres lie
-    more than TWO_FRUITS_APART x `typical_radius` (m) apart, or where one lies off the fruit's sphere `ball`
-    ((centre, radius) or None) beside the largest. Returns (cluster of each view, -1 none; their centres, most
-    pixels first), or (all -1, []) for one fruit."""
+    """The fruits one row fruit holds by its detector segments `views` ((frame, segment, pixels, centre [3], points,
+    camera centre [3]) each): clusters of centres closer than detector_split_m are two fruits where seen together
+    in MIN_SPLIT_FRAMES frames, or in one with centres over TWO_FRUITS_APART x `typical_radius` apart, or where one
+    lies off the `model`'s sphere beside the largest. Returns (each view's cluster, -1 none; the clusters' centres,
+    most pixels first), or (all -1, []) for one fruit."""
     labels = np.full(len(views), -1)
     if cfg.detector_split_m <= 0 or len(views) < 2:
         return labels, []
@@ -138,7 +130,8 @@ def detector_clusters(views: list[tuple], ball: tuple | None, typical_radius: fl
         frames_of[c].add(f)
         px[c] += n
     centre = {c: np.median(pts[raw == c], 0) for c in frames_of}
-    off = {c: ball is not None and bool(np.linalg.norm(centre[c] - ball[0]) > ball[1] + cfg.margin_m) for c in centre}
+    off = {c: model.centre is not None and bool(np.linalg.norm(centre[c] - model.centre) > model.radius + cfg.margin_m)
+           for c in centre}
     largest = max(frames_of, key=px.get)
     together = set()
     for a, b in combinations(sorted(frames_of), 2):
@@ -156,15 +149,12 @@ def detector_clusters(views: list[tuple], ball: tuple | None, typical_radius: fl
 
 def update(models: FruitModels, given: dict[int, list[np.ndarray]], seg_views: dict[int, list[tuple]],
            cfg: Config) -> tuple[FruitModels, dict[tuple[int, int], int]]:
-    """Refit the models after a round: each fruit's sphere and seen surface to the points the round gave it
-    (`given`; a fruit given none keeps a copy of its model, so the models passed in are not changed), not to
-    the render slots the association fitted them to: where a window painted two touching fruits as one slot,
-    the detector and the other fruit's shape take its pixels back in the round, and the refit follows. A fruit
-    whose detector segments (`seg_views`) form several clusters (detector_clusters) is split: cluster 0 keeps
-    its id, each other joins the fruit whose centre lies within max_match_distance_m (or inside its sphere),
-    else is a new fruit. Returns the models and {(frame, segment): fruit id} of the split fruits' segments (the
-    detector evidence of the next round). A cluster whose points fit no sphere (a fruit seen only as a cap, at
-    the row's ends or the image border) gets one of the row's typical radius behind them."""
+    """New models after a round, the inputs unchanged. Each fruit is refitted to the points the round gave it
+    (`given`), not to the slots the association saw (a slot can paint two touching fruits). A fruit whose detector
+    segments (`seg_views`) form several clusters is split: cluster 0 keeps its id, each other joins the fruit
+    within max_match_distance_m (or its sphere), else is new; a cluster seen only as a cap gets a sphere of the
+    typical radius behind it. Returns the models and the next round's detector evidence: {(frame, segment): fruit id}
+    of the split fruits' segments."""
     out = FruitModels()
     out.typical_radius = models.typical_radius
     for f, m in models.items():
@@ -174,18 +164,15 @@ def update(models: FruitModels, given: dict[int, list[np.ndarray]], seg_views: d
             out[f] = replace(m)   # a copy: a cluster split off below may add points to it
     owners = {}
     for fruit, views in sorted(seg_views.items()):
-        m = out.get(fruit)
-        if m is None:
-            continue
-        labels, centres = detector_clusters(views, None if m.centre is None else (m.centre, m.radius),
-                                            out.typical_radius, cfg)
+        m = out[fruit]
+        labels, centres = detector_clusters(views, m, out.typical_radius, cfg)
         if not centres:
             continue
         ids = [fruit]
-        for j in range(1, len(centres)):
-            near = [(float(np.linalg.norm(o.centre - centres[j])), g) for g, o in out.items()
-                    if g not in ids and o.centre is not None and np.linalg.norm(o.centre - centres[j])
-                    <= max(cfg.max_match_distance_m, o.radius + cfg.margin_m)]
+        for c in centres[1:]:
+            dist = {g: float(np.linalg.norm(o.centre - c)) for g, o in out.items()
+                    if g not in ids and o.centre is not None}
+            near = [(d, g) for g, d in dist.items() if d <= max(cfg.max_match_distance_m, out[g].radius + cfg.margin_m)]
             ids.append(min(near)[1] if near else max(out) + 1)
             if not near:
                 out[ids[-1]] = FruitModel(m.class_id, np.zeros((0, 3)))

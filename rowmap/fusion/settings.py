@@ -1,33 +1,32 @@
-"""The fusion's settings (panoptic_fusion's Config) and the names of the cost terms."""
+"""The fusion's settings (panoptic_fusion's Config) and the names of its cost terms."""
 from __future__ import annotations
 
 from dataclasses import dataclass
 
 TERMS = ("render", "detector", "shape", "surface", "order")
-"""The cost terms of the per-pixel assignment (rowmap.fusion.assignment); docs/fusion.md has their table."""
+"""The terms of the per-pixel cost (assignment.terms; docs/fusion.md has their table)."""
 
 
 @dataclass(frozen=True)
 class Config:
     max_match_distance_m: float = 0.04
-    """metres, > 0: two windows' slots of one fruit lie at most this far apart (about half a fruit diameter) without
-    a shared frame, farther as their masks agree on shared frames (association.pair_cost)."""
+    """m, > 0: two windows' slots of one fruit lie this far apart without a shared frame, farther as masks agree."""
     min_mask_iou: float = 0.3
-    """[0, 1]: two windows' masks of one fruit must overlap this much on the frames both rendered."""
+    """[0, 1]: how much two windows' masks of one fruit overlap on the frames both rendered."""
     group_gap_m: float = 0.03
-    """metres, >= 0: a slot's pixels in a frame split into groups at 3D gaps wider than this (0 = never)."""
+    """m, >= 0: a slot's pixels in a frame split into groups at 3D gaps wider than this (0 = never)."""
     max_fruit_radius_m: float = 0.07
-    """metres, > 0: a fitted sphere wider than this is no fruit model (about 1.5 x the crop's largest radius)."""
+    """m, > 0: a fitted sphere wider than this is no fruit model (about 1.5 x the crop's largest radius)."""
     margin_m: float = 0.01
-    """metres, > 0: the depth error of a fruit model; a point this close to a fruit's surface lies on it."""
+    """m, > 0: the depth error of a fruit model; a point this close to a fruit's surface lies on it."""
     halo_factor: float = 1.25
-    """multiple of a fruit's radius, >= 1: a point this far from its centre (+ margin_m) costs the fruit fully."""
+    """radii, >= 1: a point this far from a fruit's centre (+ margin_m) costs the fruit fully."""
     detector_split_m: float = 0.03
-    """metres, >= 0: a fruit's detector segments in clusters farther apart than this are two fruits (0 = never)."""
+    """m, >= 0: a fruit's detector segments in clusters farther apart than this are two fruits (0 = never)."""
     refine_rounds: int = 1
     """rounds, 0-3: assign every frame, refit the fruit models (splits, seen surfaces), assign again."""
     terms_off: tuple[str, ...] = ()
-    """cost terms switched off (names of TERMS), for `pag bench fusion_terms`; () = every term on."""
+    """names of TERMS switched off, for `pag bench fusion_terms`; () = every term on."""
     align_windows: bool = True
     """bring every window into the first window's frame through the frames they share (off: own frames)."""
 

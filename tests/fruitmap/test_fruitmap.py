@@ -188,7 +188,7 @@ def test_mask_overlaps_count_each_pair_of_codes_of_two_windows_once_in_either_or
     rng = np.random.default_rng(3)
     m0, m1 = rng.integers(0, 4, (12, 10)).astype(np.int32), rng.integers(0, 3, (12, 10)).astype(np.int32)
     ov = association.MaskOverlaps({(0, 4): m0, (1, 4): m1, (0, 6): m0})   # frame 6: window 0 only
-    assert ov.frames(0, 1) == ov.frames(1, 0) == [4] and ov.frames(0, 2) == []
+    assert ov.shared == {(0, 1): [4]}
     joint = ov.joint(0, 1, 4)
     assert {(x, y) for x, y, _ in joint} == {(x, y) for x in range(4) for y in range(3)} - {(0, 0)}
     for x, y, n in joint:
