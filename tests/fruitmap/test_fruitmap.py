@@ -893,6 +893,29 @@ def test_end_tracks_link_a_fruits_segments_frame_to_frame_in_the_frames_fused_fr
     assert [t.frames for t in ends.link(late, 0.03, 20)] == [[0], [ends.MAX_GAP_FRAMES + 1]]
 
 
+def test_fruits_seen_only_outside_the_fused_frames_are_counted_from_the_detector_once(make_row):
+    # only the first two fused frames are kept, as if the rest of the recording were its end: the fruits seen
+    # only later come back from the detector's tracks, placed where the ground truth has them, and no fruit the
+    # fused frames hold is counted twice
+    row = make_row()
+    row.runner().run(["panoptic_fusion"], force=True)
+    pf = pd.read_parquet(row.processed / "panoptic_frames.parquet")
+    pf[pf.frame_id.isin(sorted(pf.frame_id)[:2])].to_parquet(row.processed / "panoptic_frames.parquet")
+    counted = {}
+    for on in (True, False):
+        row.runner(f"fruit_count.end_tracks={str(on).lower()}").run(["fruit_count"], force=True)
+        fruits = pd.read_parquet(row.processed / "fruits.parquet")
+        counted[on] = fruits[fruits.counted.astype(bool)]
+    ends_ = counted[True][counted[True].end_track_frames.notna()]
+    assert len(ends_) > 0 and len(counted[True]) == len(counted[False]) + len(ends_)
+    assert (ends_.n_frames == 0).all() and (ends_.end_track_frames >= 2).all()
+    gt = row.gt_fruits[row.gt_fruits.near_row.astype(bool)][["x_m", "y_m", "z_m"]].to_numpy()
+    xyz = counted[True][["x_m", "y_m", "z_m"]].to_numpy()
+    d_gt = np.linalg.norm(xyz[:, None] - gt[None], axis=2)
+    assert (np.linalg.norm(ends_[["x_m", "y_m", "z_m"]].to_numpy()[:, None] - gt[None], axis=2).min(1) < 0.02).all()
+    assert len(set(d_gt.argmin(1))) == len(xyz)                    # no real fruit counted twice
+
+
 def test_a_fruit_wider_than_any_fruit_of_the_crop_is_not_counted():
     cfg = fruit_count.Config()
     rng = np.random.default_rng(3)
