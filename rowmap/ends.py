@@ -87,8 +87,7 @@ def segment_views(frame, c2w: np.ndarray, data_root: Path, dropped: np.ndarray |
     return out
 
 
-def link(views: list[tuple[int, list[tuple]]], link_m: float, min_points: int
-         ) -> list[Track]:
+def link(views: list[tuple[int, list[tuple]]], link_m: float, min_points: int) -> list[Track]:
     """Tracks of the segments `views` ((frame, segment_views) in frame order): each segment with at least
     min_points points joins the track whose last centre lies nearest, within link_m and MAX_GAP_FRAMES, that has
     no segment of this frame yet (nearest pairs first), else starts a track."""
