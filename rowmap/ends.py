@@ -2,8 +2,8 @@
 
 Only every few frames is fused (a window's validation frames), so a fruit that enters the view in the
 recording's last frames, or leaves it in the first, lies in one fused frame at most: too few for fruit_count to
-tell it from a stray fragment. The detector segments every frame. In the end zones, the frames before the second
-fused frame and after the last but one, each fruit segment is un-projected with the sensor depth and the
+tell it from a stray fragment; so does every fruit seen only in the frames of a window that failed. The detector
+segments every frame. In these zones (end_zones), each fruit segment is un-projected with the sensor depth and the
 segments are linked from frame to frame by their 3D centres into tracks. fruit_count counts a track seen in
 enough frames that no counted fruit explains.
 """
@@ -48,12 +48,19 @@ class Track:
 
 
 def end_zones(fused: list[int], recorded: list[int]) -> list[int]:
-    """The recorded frames where a fruit in view can lie in fewer than two fused frames: those before the second
-    fused frame and after the last but one (every frame, with fewer than two fused frames)."""
-    fused = sorted(fused)
-    if len(fused) < 2:
-        return sorted(recorded)
-    return [f for f in sorted(recorded) if f < fused[1] or f > fused[-2]]
+    """The recorded frames where a fruit in view can lie in fewer than two fused frames. The fused frames fall
+    into runs, split where two lie more than twice their median spacing apart (the frames of a window that
+    failed, or the recording's ends); a run covers the frames from its second fused frame to its last but one,
+    and every other frame is in the zones."""
+    fused, covered = sorted(fused), np.zeros(len(recorded), bool)
+    frames = np.array(sorted(recorded))
+    if len(fused) >= 2:
+        gap = 2 * float(np.median(np.diff(fused)))
+        cuts = np.flatnonzero(np.diff(fused) > gap) + 1
+        for run in np.split(np.array(fused), cuts):
+            if len(run) >= 3:
+                covered |= (frames >= run[1]) & (frames <= run[-2])
+    return frames[~covered].tolist()
 
 
 def row_pose(fid: int, fused_c2w: dict[int, np.ndarray], odometry: dict[int, np.ndarray]) -> np.ndarray:

@@ -51,7 +51,7 @@ SCHEMA = table_schema(
     col("n_windows", pa.int32(), "windows whose instance slots were fused into this fruit", "windows"),
     col("first_frame_id", pa.int32(), "first fused frame it appears in"),
     col("last_frame_id", pa.int32(), "last fused frame it appears in (for an end-track fruit: its detector frames)"),
-    col("end_track_frames", pa.int32(), "a fruit at a recording's end that no two fused frames see, tracked by the "
-        "detector alone (fruit_count.end_tracks; no fused pixels, n_frames 0): the frames it is tracked in; null "
-        "for a fused fruit", "frames", nullable=True),
+    col("end_track_frames", pa.int32(), "a fruit at a recording's end (or in a failed window's frames) that no two "
+        "fused frames see, tracked by the detector alone (fruit_count.end_tracks; no fused pixels, n_frames 0): the "
+        "frames it is tracked in; null for a fused fruit", "frames", nullable=True),
 )

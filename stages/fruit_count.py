@@ -101,8 +101,8 @@ class Config:
     frames, however few frames it is seen in. Lower it to drop fewer fruits, 0 with a detector that misses
     fruits in many frames (0 switches both tests off)."""
     end_tracks: bool = True
-    """count the fruits the detector alone tracks at a recording's ends, where no two fused frames see them
-    (rowmap.ends, segments linked within lone_fragment_m / 2; end_fruits; off as well with lone_fragment_m 0)."""
+    """count the fruits the detector alone tracks where no two fused frames see them: a recording's ends, a failed
+    window's frames (rowmap.ends, linked within lone_fragment_m / 2; end_fruits; off too at lone_fragment_m 0)."""
     max_fit_extent_ratio: float = 2.0
     """>= 1. A surface fit whose diameter (or length) exceeds this multiple of the largest extent of the points
     is rejected too: it extrapolates a whole fruit from a small cap (a fruit seen only as a sliver over or past
@@ -444,8 +444,8 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
         ctx.note(f"fruits {lone}: fragments by size, confirmed by the detector in every frame and farther than "
                  f"{cfg.lone_fragment_m:g} m from any counted fruit (lone_fragment_m): counted")
     if ends:
-        ctx.note(f"fruits {[r['fruit_id'] for r in added]}: tracked by the detector at the recording's "
-                 f"ends, where no two fused frames see them (end_tracks): counted, without fused pixels")
+        ctx.note(f"fruits {[r['fruit_id'] for r in added]}: tracked by the detector where no two fused "
+                 f"frames see them (the recording's ends, failed windows; end_tracks): counted, without fused pixels")
     if n_frag:
         ctx.note(f"{n_frag} near-row fruits not counted: fragments (under {cfg.min_count_frames} fused frames or "
                  f"under {cfg.min_count_points} points or pixels at 320x180), unconfirmed by the detector or wider than "

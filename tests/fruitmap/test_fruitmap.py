@@ -870,6 +870,9 @@ def test_end_tracks_link_a_fruits_segments_frame_to_frame_in_the_frames_fused_fr
     rng = np.random.default_rng(6)
     assert ends.end_zones([1, 5, 9, 13], list(range(16))) == [0, 1, 2, 3, 4, 10, 11, 12, 13, 14, 15]
     assert ends.end_zones([3], list(range(5))) == list(range(5))
+    # a window that failed leaves a gap in the fused frames: its frames, and the runs' ends beside it, are zones
+    fused = [*range(0, 40, 4), *range(80, 120, 4)]
+    assert ends.end_zones(fused, list(range(120))) == [*range(0, 4), *range(33, 84), *range(113, 120)]
     # a frame between fused frames is placed through the nearest one: the row frame is the odometry's moved
     odometry = {f: pose_matrix(np.array([0.01 * f, 0, 0, 0, 0, 0, 1.0])) for f in range(10)}
     shift = pose_matrix(np.array([0.2, -0.1, 0.0, 0.0, 0.0, np.sin(0.05), np.cos(0.05)]))
