@@ -16,7 +16,7 @@ from nerf.surfaces import robust_centre, runs_by_key
 from pipeline.parallel import available_cores, in_order
 from rowmap.fusion.association import MAX_POINTS, min_group_px
 from rowmap.fusion.evidence import Evidence, Frame, pixel_evidence
-from rowmap.fusion.models import FruitModels, update
+from rowmap.fusion.models import FruitModels, SegmentView, update
 from rowmap.fusion.settings import Config
 from rowmap.geometry import subsample
 
@@ -102,8 +102,8 @@ def fused_label(frame: Frame, models: FruitModels, owners: dict, cfg: Config
 
 
 def round_views(frame: Frame, models: FruitModels, owners: dict, cfg: Config) -> tuple[list, list]:
-    """What one frame gives the refit: [(fruit, its pixels' points)] and [(fruit, (frame, segment, pixels, centre
-    [3], points, camera centre [3]))] of the segments lying mostly on fruits, each to the fruit holding most."""
+    """What one frame gives the refit: [(fruit, its pixels' points)] and [(fruit, SegmentView)] of the detector
+    segments lying mostly on fruits, each to the fruit holding most."""
     _, ev, ids = fused_label(frame, models, owners, cfg)
     given, segs, taken = [], [], set()
     fruit_px = np.flatnonzero(ids > 0)
@@ -124,8 +124,8 @@ def round_views(frame: Frame, models: FruitModels, owners: dict, cfg: Config) ->
         if n >= min_px and 2 * covered[s] > size[s] and s not in taken:
             taken.add(s)
             pts = ev.points[rows[starts[j]:ends[j]]]
-            segs.append((f, (frame.frame_id, s, n, robust_centre(pts)[0], pts[:: max(1, len(pts) // 400)],
-                             frame.c2w[:3, 3])))
+            segs.append((f, SegmentView(frame.frame_id, s, n, robust_centre(pts)[0], pts[:: max(1, len(pts) // 400)],
+                                        frame.c2w[:3, 3])))
     return given, segs
 
 
@@ -137,7 +137,7 @@ def fuse(frame_ids: Iterable[int], load: Callable[[int], Frame], models: FruitMo
     frame_ids, owners, threads = list(frame_ids), {}, threads or available_cores()
     for r in range(cfg.refine_rounds):
         given: dict[int, list[np.ndarray]] = defaultdict(list)
-        seg_views: dict[int, list[tuple]] = defaultdict(list)
+        seg_views: dict[int, list[SegmentView]] = defaultdict(list)
         views = in_order(lambda fid: round_views(load(fid), models, owners, cfg), frame_ids, threads)
         for points, segs in progress(views, f"fusion round {r + 1}", len(frame_ids)):
             for f, pts in points:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from collections import defaultdict
 from dataclasses import dataclass, replace
+from typing import NamedTuple
 from itertools import combinations
 
 import numpy as np
@@ -21,6 +22,17 @@ MAX_FIT_POINTS = 3000
 TWO_FRUITS_APART = 1.5
 """multiple of the row's typical radius: two clusters of a fruit's detector segments seen in one frame farther
 apart are two fruits (a leaf cuts one fruit into pieces at most about 1.3 radii apart)."""
+
+
+class SegmentView(NamedTuple):
+    """One detector segment lying mostly on one fruit in one frame (assignment.round_views)."""
+
+    frame: int
+    segment: int
+    n_px: int             # its pixels on the fruit
+    centre: np.ndarray    # [3] robust centre of its points
+    points: np.ndarray    # [N, 3] world points (subsampled)
+    eye: np.ndarray       # [3] camera centre
 
 
 @dataclass
@@ -113,22 +125,22 @@ def fit_models(groups: list[list[int]], local: list[LocalFruit], views: dict, cf
     return out
 
 
-def detector_clusters(views: list[tuple], model: FruitModel, typical_radius: float, cfg: Config
+def detector_clusters(views: list[SegmentView], model: FruitModel, typical_radius: float, cfg: Config
                       ) -> tuple[np.ndarray, list[np.ndarray]]:
-    """The fruits one row fruit holds by its detector segments `views` ((frame, segment, pixels, centre [3], points,
-    camera centre [3]) each): clusters of centres closer than detector_split_m are two fruits where seen together
-    in MIN_SPLIT_FRAMES frames, or in one with centres over TWO_FRUITS_APART x `typical_radius` apart, or where one
-    lies off the `model`'s sphere beside the largest. Returns (each view's cluster, -1 none; the clusters' centres,
-    most pixels first), or (all -1, []) for one fruit."""
+    """The fruits one row fruit holds by its detector segments `views`: clusters of centres closer than
+    detector_split_m are two fruits where seen together in MIN_SPLIT_FRAMES frames, or in one with centres over
+    TWO_FRUITS_APART x `typical_radius` apart, or where one lies off the `model`'s sphere beside the largest.
+    Returns (each view's cluster, -1 none; the clusters' centres, most pixels first), or (all -1, []) for one
+    fruit."""
     labels = np.full(len(views), -1)
     if cfg.detector_split_m <= 0 or len(views) < 2:
         return labels, []
-    pts = np.stack([v[3] for v in views])
+    pts = np.stack([v.centre for v in views])
     raw = fcluster(linkage(pts, "single"), cfg.detector_split_m, criterion="distance")
     frames_of, px = defaultdict(set), defaultdict(int)
-    for (f, _, n, *_), c in zip(views, raw):
-        frames_of[c].add(f)
-        px[c] += n
+    for v, c in zip(views, raw):
+        frames_of[c].add(v.frame)
+        px[c] += v.n_px
     centre = {c: np.median(pts[raw == c], 0) for c in frames_of}
     off = {c: model.centre is not None and bool(np.linalg.norm(centre[c] - model.centre) > model.radius + cfg.margin_m)
            for c in centre}
@@ -147,7 +159,7 @@ def detector_clusters(views: list[tuple], model: FruitModel, typical_radius: flo
     return np.array([rank.get(c, -1) for c in raw]), [centre[c] for c in order]
 
 
-def update(models: FruitModels, given: dict[int, list[np.ndarray]], seg_views: dict[int, list[tuple]],
+def update(models: FruitModels, given: dict[int, list[np.ndarray]], seg_views: dict[int, list[SegmentView]],
            cfg: Config) -> tuple[FruitModels, dict[tuple[int, int], int]]:
     """New models after a round, the inputs unchanged. Each fruit is refitted to the points the round gave it
     (`given`), not to the slots the association saw (a slot can paint two touching fruits). A fruit whose detector
@@ -178,11 +190,11 @@ def update(models: FruitModels, given: dict[int, list[np.ndarray]], seg_views: d
                 out[ids[-1]] = FruitModel(m.class_id, np.zeros((0, 3)))
         for j, g in enumerate(ids):   # the clusters' models are fitted to their segments' points
             mine = [v for v, lab in zip(views, labels) if lab == j]
-            pts = np.concatenate([v[4] for v in mine])
+            pts = np.concatenate([v.points for v in mine])
             if j == 0 or out[g].centre is None:
-                eye = np.mean([v[5] for v in mine], 0)
+                eye = np.mean([v.eye for v in mine], 0)
                 out[g] = FruitModel(m.class_id, pts).refit(cfg, behind=(eye, out.typical_radius))
             else:
                 out[g].points = np.concatenate([out[g].points, pts])
-        owners.update({(v[0], v[1]): ids[lab] for v, lab in zip(views, labels) if lab >= 0})
+        owners.update({(v.frame, v.segment): ids[lab] for v, lab in zip(views, labels) if lab >= 0})
     return out, owners

@@ -318,7 +318,7 @@ def test_a_split_off_cluster_joins_its_neighbour_and_leaves_the_models_passed_in
     """Fruit 1's detector segments form two clusters seen together in three frames, one of them on fruit 2 (which
     the round gave no points): that cluster's segments become fruit 2's evidence and its points join fruit 2's
     model, while the models the round started from keep their points."""
-    from rowmap.fusion.models import update
+    from rowmap.fusion.models import SegmentView, update
 
     cfg = Config()
     centres = [np.array([-0.03, 0.0, 0.5]), np.array([0.03, 0.0, 0.5])]
@@ -326,7 +326,7 @@ def test_a_split_off_cluster_joins_its_neighbour_and_leaves_the_models_passed_in
     models.typical_radius = R
     before = {f: m.points.copy() for f, m in models.items()}
     cap = model(centres[1], cfg).points[:200]
-    views = [(fid, seg, 300, c, pts, np.zeros(3)) for fid in range(3)
+    views = [SegmentView(frame=fid, segment=seg, n_px=300, centre=c, points=pts, eye=np.zeros(3)) for fid in range(3)
              for seg, c, pts in ((1, centres[0], models[1].points[:200]), (2, centres[1], cap))]
     out, owners = update(models, {1: [models[1].points]}, {1: views}, cfg)
     assert owners == {(fid, 1): 1 for fid in range(3)} | {(fid, 2): 2 for fid in range(3)}
@@ -340,14 +340,14 @@ def test_a_fruit_s_detector_segments_seen_in_one_frame_far_apart_are_two_fruits(
     two segments, seen together in one frame only. Segments farther apart than a fruit allows (8 cm, radius
     3 cm) are two fruits: the second cluster's segments become a new fruit's evidence. Two pieces of one fruit
     (3.8 cm apart: a leaf cut its segment) stay one."""
-    from rowmap.fusion.models import update
+    from rowmap.fusion.models import SegmentView, update
 
     cfg = Config()
     a, b = np.array([-apart_m / 2, 0.0, 0.5]), np.array([apart_m / 2, 0.0, 0.5])
     both = FruitModel(class_id=2, points=np.zeros((0, 3)), centre=(a + b) / 2, radius=apart_m / 2 + R / 2)
     models = FruitModels({1: both})
     models.typical_radius = R
-    views = [(fid, seg, 300, c, model(c, cfg).points[:300], np.zeros(3))
+    views = [SegmentView(frame=fid, segment=seg, n_px=300, centre=c, points=model(c, cfg).points[:300], eye=np.zeros(3))
              for seg, c, fids in ((1, a, (0, 1, 2)), (2, b, (2, 3))) for fid in fids]
     out, owners = update(models, {}, {1: views}, cfg)
     if split:
