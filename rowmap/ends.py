@@ -16,7 +16,7 @@ import numpy as np
 import pandas as pd
 
 from nerf.geometry import pose_matrix
-from nerf.surfaces import robust_centre, unproject
+from nerf.surfaces import robust_centre, runs_by_key, unproject
 from pipeline.images import read_label
 from rowmap.detections import fruit_segments
 from rowmap.geometry import POSE_COLS, subsample, with_sensor_depth
@@ -44,7 +44,7 @@ class Track:
     @property
     def span(self) -> int:
         """frames from the first segment to the last, both included."""
-        return self.frames[-1] - self.frames[0] + 1 if self.frames else 0
+        return self.frames[-1] - self.frames[0] + 1
 
 
 def end_zones(fused: list[int], recorded: list[int]) -> list[int]:
@@ -82,14 +82,13 @@ def segment_views(frame, c2w: np.ndarray, data_root: Path, dropped: np.ndarray |
     sem = read_label(data_root / frame.det_semantic_path, "detector semantic")
     depth = with_sensor_depth(np.zeros(seg.shape), data_root / frame.depth_path, frame.depth_scale_m)
     k = np.array([frame.fx, frame.fy, frame.cx, frame.cy], np.float64)
+    v_all, u_all = np.nonzero((seg > 0) & (depth > 0))
+    v_all, u_all, _, starts, ends = runs_by_key(v_all, u_all, seg[v_all, u_all])   # each segment's pixels, in order
     out = []
-    for s in np.unique(seg[seg > 0]):
-        v, u = np.nonzero((seg == s) & (depth > 0))
-        if not len(v):
-            continue
-        ref = float(reference_pixels(len(v), seg.size))
-        pick = subsample(len(v), max_points)
-        v, u = v[pick], u[pick]
+    for s0, s1 in zip(starts, ends):
+        ref = float(reference_pixels(int(s1 - s0), seg.size))
+        pick = s0 + subsample(int(s1 - s0), max_points)
+        v, u = v_all[pick], u_all[pick]
         out.append((int(np.bincount(sem[v, u]).argmax()), unproject(depth, k, c2w, v, u), depth[v, u], ref))
     return out
 

@@ -182,6 +182,17 @@ def lone_fragments(fruits: pd.DataFrame, candidates: list[int], min_distance_m: 
     return out
 
 
+def majority_class(votes: np.ndarray) -> int:
+    """The class most votes name, among the thing classes where any vote names one."""
+    things = votes[np.isin(votes, THING_IDS)]
+    return int(np.bincount(things if len(things) else votes).argmax())
+
+
+def has_shape(m: dict) -> bool:
+    """Whether measure's result `m` has a plausible sphere or spheroid fit (a fruit's shape)."""
+    return m["diameter_sphere_m"] is not None or m["diameter_spheroid_m"] is not None
+
+
 def end_fruits(tracks: list[Track], fruits: pd.DataFrame, cfg: Config) -> list[tuple[Track, dict]]:
     """The end tracks (rowmap.ends) to count as fruits, with measure's result: seen in at least min_count_frames
     frames over at least MIN_SPAN_FRAMES, with a plausible surface fit (a fruit's shape), not a fragment by
@@ -195,13 +206,12 @@ def end_fruits(tracks: list[Track], fruits: pd.DataFrame, cfg: Config) -> list[t
                      counted.diameter_m.fillna(0.0).to_numpy(np.float64) / 2))
     out = []
     for t in sorted(tracks, key=lambda t: -sum(map(len, t.points))):
-        if len(set(t.frames)) < cfg.min_count_frames or t.span < MIN_SPAN_FRAMES:
+        if len(t.frames) < cfg.min_count_frames or t.span < MIN_SPAN_FRAMES:
             continue
         m = measure(np.concatenate(t.points), cfg)
-        shaped = m["diameter_sphere_m"] is not None or m["diameter_spheroid_m"] is not None
         near_row = float(np.median(np.concatenate(t.depths))) <= cfg.max_depth_m
-        if (not shaped or not near_row or oversize(m["diameter_m"], cfg)
-                or is_fragment(len(set(t.frames)), m["n_points"], sum(t.ref_px), cfg)):
+        if (not has_shape(m) or not near_row or oversize(m["diameter_m"], cfg)
+                or is_fragment(len(t.frames), m["n_points"], sum(t.ref_px), cfg)):
             continue
         p, r = np.array([m["x_m"], m["y_m"], m["z_m"]], np.float64), m["diameter_m"] / 2
         if all(np.linalg.norm(p - q) > max(cfg.lone_fragment_m, r + rq) for q, rq in taken):
@@ -216,14 +226,13 @@ def end_fruit_rows(ends: list[tuple[Track, dict]], first_id: int) -> list[dict]:
     rows = []
     for fruit, (t, m) in enumerate(ends, start=first_id):
         cls = np.asarray(t.classes)
-        things = cls[np.isin(cls, THING_IDS)]
-        c = int(np.bincount(things if len(things) else cls).argmax())
+        c = majority_class(cls)
         rows.append({"fruit_id": fruit, "class_id": c, "class_name": class_name(c),
                      "class_confidence": float(np.mean(cls == c)), **m,
                      "median_depth_m": float(np.median(np.concatenate(t.depths))), "near_row": True, "n_frames": 0,
                      "counted": True, "n_confirmed_frames": None, "detector_p": None, "n_windows": 0,
                      "first_frame_id": min(t.frames), "last_frame_id": max(t.frames),
-                     "end_track_frames": len(set(t.frames))})
+                     "end_track_frames": len(t.frames)})
     return rows
 
 
@@ -367,16 +376,14 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
             continue
         pts = np.concatenate(points[fruit])
         measured[fruit] = pts, measure(pts, cfg)
-    shapeless = {f for f, (_, m) in measured.items()   # no plausible surface fit: no fruit shape
-                 if m["diameter_sphere_m"] is None and m["diameter_spheroid_m"] is None}
+    shapeless = {f for f, (_, m) in measured.items() if not has_shape(m)}
     support = detector_support(checked, confirmed, cfg.detector_alpha, shapeless)
     rows, cloud_pts, cloud_ids = [], [], []
     too_wide: list[int] = []  # near-row fruits not counted by the oversize rule
     lone_candidates: list[int] = []  # fragments the detector confirms in every frame (lone_fragment_m)
     for fruit, (pts, m) in measured.items():
         v = np.asarray(votes[fruit])
-        things = v[np.isin(v, THING_IDS)]
-        cls = int(np.bincount(things).argmax()) if len(things) else int(np.bincount(v).argmax())
+        cls = majority_class(v)
         med_depth = float(np.median(np.concatenate(depths[fruit])))
         near_row, n_frames = med_depth <= cfg.max_depth_m, len(set(seen[fruit]))
         wide = oversize(m["diameter_m"], cfg)
