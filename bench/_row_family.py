@@ -132,6 +132,18 @@ UNSEEN: tuple[FamilyRow, ...] = (
     FamilyRow("unseen4_weak", "a weak detector and strong drift at light density",
               seed=604, fruits_per_m=15, det_miss_rate=0.31, det_false_pos_rate=0.46, det_merge_rate=0.068,
               odom_drift_m_per_m=0.052, odom_yaw_drift_deg_per_m=3.6, n_frames=130),
+    FamilyRow("unseen5_medium", "medium density, a good detector, typical drift",
+              seed=701, fruits_per_m=23, det_miss_rate=0.125, det_false_pos_rate=0.29, det_merge_rate=0.058,
+              odom_drift_m_per_m=0.033, odom_yaw_drift_deg_per_m=2.3, n_frames=152),
+    FamilyRow("unseen5_dense", "dense, a noisy detector, mild drift",
+              seed=702, fruits_per_m=28, det_miss_rate=0.215, det_false_pos_rate=0.41, det_merge_rate=0.088,
+              odom_drift_m_per_m=0.026, odom_yaw_drift_deg_per_m=1.8, n_frames=172),
+    FamilyRow("unseen5_crowded", "crowded, many merges, few false positives, drift between typical and strong",
+              seed=703, fruits_per_m=39, det_miss_rate=0.185, det_false_pos_rate=0.24, det_merge_rate=0.118,
+              odom_drift_m_per_m=0.037, odom_yaw_drift_deg_per_m=2.45, n_frames=146),
+    FamilyRow("unseen5_weak", "a weak detector and strong drift at light density",
+              seed=704, fruits_per_m=13, det_miss_rate=0.33, det_false_pos_rate=0.51, det_merge_rate=0.072,
+              odom_drift_m_per_m=0.048, odom_yaw_drift_deg_per_m=3.4, n_frames=138),
 )
 """Unseen rows (`pag bench rows --unseen`): seeds and knob values in no family or held-out row. Their outputs
 are read once, when a design is final, and reported as they come; nothing is tuned on them. The first four
@@ -139,8 +151,9 @@ were defined before the fusion redesign (issue 48) began and read once after it;
 defined after that reading, before the redesign's last changes, and are read once after them; the `unseen3_`
 rows were defined on 2026-12-07, after the round refit (c4012cf) and before the changes that follow it, all
 within the family's ranges, and are read once after those changes; the `unseen4_` rows were defined after
-that reading (9f96e52), before the changes for the fruits at a recording's ends, and are read once after them.
-Rows beyond
+that reading (9f96e52), before the changes for the fruits at a recording's ends, and are read once after them;
+the `unseen5_` rows were defined after that reading (97970ce), before the fusion's rules were measured one by
+one and those that help no row dropped, and are read once after that. Rows beyond
 the family's 8-40 fruits/m or 0.35 miss rate (0.40, 0.7 false positives per frame) test that mechanisms
 extrapolate."""
 
