@@ -109,12 +109,10 @@ class FrameReader:
                      self.nearest.c2w[fid])
 
 
-def write_frame(fid: int, fused: np.ndarray, models, reader: FrameReader, n_windows: int, out_dir: Path,
-                ctx: StageContext) -> dict:
-    """Write one fused frame's PNGs; its panoptic_frames row."""
+def write_frame(fid: int, fused: np.ndarray, classes: np.ndarray, reader: FrameReader, n_windows: int,
+                out_dir: Path, ctx: StageContext) -> dict:
+    """Write one fused frame's PNGs (`classes`: fruit id -> class id); its panoptic_frames row."""
     fr, r = reader.frames.loc[fid], reader.nearest.loc[fid]
-    classes = np.zeros(max(models, default=0) + 1, np.uint8)
-    classes[list(models)] = [m.class_id for m in models.values()]
     label = np.maximum(fused, 0)
     sem_r = reader.render(fid, "semantic")
     stuff = np.where(np.isin(sem_r, THING_IDS), 0, sem_r)     # a thing pixel given no fruit is background
@@ -156,9 +154,11 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
                .drop_duplicates("frame_id").set_index("frame_id"))   # each frame's window nearest its centre
     reader = FrameReader(frames, renders, nearest, codes, slot_table(local),
                          dropped_segments(inputs.get("detections_filtered")), ctx)
-    rows, models = [], fit_models(groups, local, per_slot, cfg)
-    for fid, fused, models in fuse(nearest.index.astype(int).tolist(), reader.frame, models, cfg, ctx.progress):
-        rows.append(write_frame(fid, fused, models, reader, int(n_win[fid]), out_dir, ctx))
+    models, fused = fuse(nearest.index.astype(int).tolist(), reader.frame, fit_models(groups, local, per_slot, cfg),
+                         cfg, ctx.progress)
+    classes = np.zeros(max(models, default=0) + 1, np.uint8)
+    classes[list(models)] = [m.class_id for m in models.values()]
+    rows = [write_frame(fid, label, classes, reader, int(n_win[fid]), out_dir, ctx) for fid, label in fused]
     ctx.count("slots", len(local))
     ctx.count("slots_dropped", sum(lf.fruit_id == 0 for lf in local))
     ctx.summary.update(windows=int(views.window_id.nunique()), frames=len(rows), fruits=max(models, default=0),

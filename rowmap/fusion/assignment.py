@@ -131,9 +131,9 @@ def round_views(frame: Frame, models: FruitModels, owners: dict, cfg: Config) ->
 
 def fuse(frame_ids: Iterable[int], load: Callable[[int], Frame], models: FruitModels, cfg: Config,
          progress: Callable = lambda it, label, total: it, threads: int = 0
-         ) -> Iterator[tuple[int, np.ndarray, FruitModels]]:
-    """(frame id, fused label [H, W], the final models) per frame, in frame order, after `refine_rounds` rounds.
-    `threads`: frames at once (0 = every core); `load` must be thread-safe."""
+         ) -> tuple[FruitModels, Iterator[tuple[int, np.ndarray]]]:
+    """The models after `refine_rounds` rounds (run here), and (frame id, fused label [H, W]) per frame in frame
+    order, assigned as the iterator is read. `threads`: frames at once (0 = every core); `load`: thread-safe."""
     frame_ids, owners, threads = list(frame_ids), {}, threads or available_cores()
     for r in range(cfg.refine_rounds):
         given: dict[int, list[np.ndarray]] = defaultdict(list)
@@ -146,5 +146,4 @@ def fuse(frame_ids: Iterable[int], load: Callable[[int], Frame], models: FruitMo
                 seg_views[f].append(view)
         models, owners = update(models, given, seg_views, cfg)
     fused = in_order(lambda fid: (fid, fused_label(load(fid), models, owners, cfg)[0]), frame_ids, threads)
-    for fid, out in progress(fused, "write fused frames", len(frame_ids)):
-        yield fid, out, models
+    return models, progress(fused, "write fused frames", len(frame_ids))

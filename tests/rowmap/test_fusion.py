@@ -153,12 +153,12 @@ def test_frames_fused_on_several_threads_match_one_thread_frame_for_frame():
 
     rng_labels = {fid: rng.random(HW) < 0.1 for fid in range(8)}
     models = FruitModels({i + 1: model(c, cfg) for i, c in enumerate(centres)})
-    one = list(fuse_frames(range(8), load, models, cfg, threads=1))
-    three = list(fuse_frames(range(8), load, models, cfg, threads=3))
-    assert [f for f, _, _ in three] == list(range(8))
-    for (_, a, _), (_, b, _) in zip(one, three):
+    one = list(fuse_frames(range(8), load, models, cfg, threads=1)[1])
+    three = list(fuse_frames(range(8), load, models, cfg, threads=3)[1])
+    assert [f for f, _ in three] == list(range(8))
+    for (_, a), (_, b) in zip(one, three):
         np.testing.assert_array_equal(a, b)
-    for fid, a, _ in one:                       # and the fusion did its work: fewer wrong pixels than the render
+    for fid, a in one:                       # and the fusion did its work: fewer wrong pixels than the render
         assert (a != who + 1).sum() < (rng_labels[fid] & (who >= 0)).sum()
 
 
@@ -199,8 +199,8 @@ def test_fuse_loads_each_frame_once_per_round_and_once_to_write_it():
         calls[fid] += 1
         return Frame(frame_id=fid, label=np.where(who >= 0, who + 1, 0), depth=depth, segments=None, k=K, c2w=np.eye(4))
 
-    out = list(fuse([3, 5], load, models, cfg, threads=2))
-    assert [fid for fid, _, _ in out] == [3, 5]
+    out = list(fuse([3, 5], load, models, cfg, threads=2)[1])
+    assert [fid for fid, _ in out] == [3, 5]
     assert calls == {3: cfg.refine_rounds + 1, 5: cfg.refine_rounds + 1}
     assert (out[0][1][who >= 0] == 1).all()
 
@@ -306,7 +306,8 @@ def test_a_round_refits_a_fruit_model_the_association_placed_off_to_the_pixels_i
     for rounds in (0, 1):
         cfg = Config(refine_rounds=rounds)
         models = FruitModels({1: model(centres[0], cfg), 2: model(placed_off, cfg)})
-        *_, (_, fused, final) = fuse_frames(range(3), load, models, cfg, threads=1)
+        final, frames = fuse_frames(range(3), load, models, cfg, threads=1)
+        *_, (_, fused) = frames
         out[rounds] = (fused[bled] == 2).mean(), (fused[who >= 0] == (who + 1)[who >= 0]).mean(), final[2]
     assert np.allclose(out[0][2].centre, placed_off, atol=0.1 * R)        # no round: the model stays off
     assert np.linalg.norm(out[1][2].centre - centres[1]) < 0.05 * R         # a round: where its pixels are
