@@ -125,13 +125,12 @@ def fit_models(groups: list[list[int]], local: list[LocalFruit], views: dict, cf
     return out
 
 
-def detector_clusters(views: list[SegmentView], model: FruitModel, typical_radius: float, cfg: Config
+def detector_clusters(views: list[SegmentView], typical_radius: float, cfg: Config
                       ) -> tuple[np.ndarray, list[np.ndarray]]:
     """The fruits one row fruit holds by its detector segments `views`: clusters of centres closer than
     detector_split_m are two fruits where seen together in MIN_SPLIT_FRAMES frames, or in one with centres over
-    TWO_FRUITS_APART x `typical_radius` apart, or where one lies off the `model`'s sphere beside the largest.
-    Returns (each view's cluster, -1 none; the clusters' centres, most pixels first), or (all -1, []) for one
-    fruit."""
+    TWO_FRUITS_APART x `typical_radius` apart. Returns (each view's cluster, -1 none; the clusters' centres, most
+    pixels first), or (all -1, []) for one fruit."""
     labels = np.full(len(views), -1)
     if cfg.detector_split_m <= 0 or len(views) < 2:
         return labels, []
@@ -142,15 +141,11 @@ def detector_clusters(views: list[SegmentView], model: FruitModel, typical_radiu
         frames_of[c].add(v.frame)
         px[c] += v.n_px
     centre = {c: np.median(pts[raw == c], 0) for c in frames_of}
-    off = {c: model.centre is not None and bool(np.linalg.norm(centre[c] - model.centre) > model.radius + cfg.margin_m)
-           for c in centre}
-    largest = max(frames_of, key=px.get)
     together = set()
     for a, b in combinations(sorted(frames_of), 2):
         shared = len(frames_of[a] & frames_of[b])
-        if (shared >= MIN_SPLIT_FRAMES
-                or (shared and np.linalg.norm(centre[a] - centre[b]) > TWO_FRUITS_APART * typical_radius)
-                or (largest in (a, b) and off[a if b == largest else b])):
+        apart = float(np.linalg.norm(centre[a] - centre[b]))
+        if shared >= MIN_SPLIT_FRAMES or (shared and apart > TWO_FRUITS_APART * typical_radius):
             together |= {a, b}
     if not together:
         return labels, []
@@ -177,7 +172,7 @@ def update(models: FruitModels, given: dict[int, list[np.ndarray]], seg_views: d
     owners = {}
     for fruit, views in sorted(seg_views.items()):
         m = out[fruit]
-        labels, centres = detector_clusters(views, m, out.typical_radius, cfg)
+        labels, centres = detector_clusters(views, out.typical_radius, cfg)
         if not centres:
             continue
         ids = [fruit]
