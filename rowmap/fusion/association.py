@@ -250,18 +250,15 @@ def candidate_pairs(fruits: list[LocalFruit], overlaps: MaskOverlaps, cfg: Confi
 
 
 def associate(fruits: list[LocalFruit], masks: dict[tuple[int, int], np.ndarray], cfg: Config) -> list[list[int]]:
-    """Groups of local-fruit indices that are one row fruit: candidate_pairs merged cheapest first while no two of
-    one window share a frame or lie apart and every two windows' masks overlap by min_mask_iou. A fruit left alone
-    whose mask lies mostly on one group's, its sphere centre within max_match_distance_m of one of theirs, joins
-    it: a second slot its window painted on that fruit (centres only, not medians: this join checks no masks)."""
+    """Groups of local-fruit indices that are one row fruit: candidate_pairs merged cheapest first while every two
+    windows' masks overlap by min_mask_iou on the frames both rendered. A fruit left alone whose mask lies mostly
+    on one group's, its sphere centre within max_match_distance_m of one of theirs, joins it: a second slot its
+    window painted on that fruit (centres only, not medians: this join checks no masks)."""
     overlaps = MaskOverlaps(masks)
     members = {i: [i] for i in range(len(fruits))}
     root = list(range(len(fruits)))
 
     def compatible(a: list[int], b: list[int]) -> bool:
-        if any(fruits[i].window_id == fruits[j].window_id and (fruits[i].codes.keys() & fruits[j].codes.keys()
-               or centre_distance(fruits[i], fruits[j]) > cfg.max_match_distance_m) for i in a for j in b):
-            return False
         by_w: dict[int, list[LocalFruit]] = defaultdict(list)
         for i in a + b:
             by_w[fruits[i].window_id].append(fruits[i])

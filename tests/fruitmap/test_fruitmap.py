@@ -315,12 +315,6 @@ def test_a_window_that_paints_a_fruit_with_two_slots_in_turn_gives_it_one_id():
     assert association.pair_cost(b1, w2, association.MaskOverlaps(masks), cfg) == np.inf
     groups = sorted(sorted(g) for g in association.associate([a, b1, b2, w2], masks, cfg))
     assert groups == [[0, 1, 2, 3]]
-    # the two slots of window 1 in one frame are two fruits, and so are two slots of one window far apart
-    for b2_other in (lf(1, 6, 0, [(4, 0), (8, 0), (10, 0)], 50, 2, x3),
-                     lf(1, 6, 0, [(8, 0), (10, 0)], 50, 2, np.array([0.05, 0.0, 0.0]))):
-        w2_near = lf(2, 9, 0, [(8, 0), (10, 0), (12, 0)], 50, 2, b2_other.centre)
-        groups = sorted(sorted(g) for g in association.associate([a, b1, b2_other, w2_near], masks, cfg))
-        assert groups == [[0, 1], [2, 3]]
 
 
 def test_fruits_whose_masks_disagree_on_a_shared_frame_never_join_one_id_through_a_third_window():
