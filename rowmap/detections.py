@@ -22,6 +22,13 @@ def fruit_segments(frame, data_root: Path, dropped: np.ndarray | None = None) ->
     """[H, W] int64: the detector's segment id on each pixel of a fruit segment (0 elsewhere: stuff, void,
     and the segment ids in `dropped`), or None where the frame has no detector output. `frame` is a row of
     frames.parquet."""
+    labels = fruit_labels(frame, data_root, dropped)
+    return None if labels is None else labels[1]
+
+
+def fruit_labels(frame, data_root: Path, dropped: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray] | None:
+    """(the detector's semantic PNG [H, W], fruit_segments' map [H, W]) of one frame, each file read once; None
+    where the frame has no detector output."""
     sp, ip = frame.det_semantic_path, frame.det_instance_path
     if not isinstance(sp, str) or not isinstance(ip, str):
         return None
@@ -33,4 +40,4 @@ def fruit_segments(frame, data_root: Path, dropped: np.ndarray | None = None) ->
     inst[~np.isin(sem, THING_IDS)] = 0
     if dropped is not None and len(dropped):
         inst[np.isin(inst, dropped)] = 0
-    return inst
+    return sem, inst

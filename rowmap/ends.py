@@ -17,8 +17,7 @@ import pandas as pd
 
 from nerf.geometry import pose_matrix
 from nerf.surfaces import robust_centre, runs_by_key, unproject
-from pipeline.images import read_label
-from rowmap.detections import fruit_segments
+from rowmap.detections import fruit_labels
 from rowmap.geometry import POSE_COLS, subsample, with_sensor_depth
 from rowmap.scoring import reference_pixels
 
@@ -76,10 +75,10 @@ def segment_views(frame, c2w: np.ndarray, data_root: Path, dropped: np.ndarray |
     (a row of frames.parquet), un-projected with the sensor depth; pixels without depth are left out, and at
     most max_points per segment are kept (evenly subsampled). Reference pixels: its pixels with depth as in a
     320x180 image (rowmap.scoring.reference_pixels)."""
-    seg = fruit_segments(frame, data_root, dropped)
-    if seg is None or not seg.any():
+    labels = fruit_labels(frame, data_root, dropped)
+    if labels is None or not labels[1].any():
         return []
-    sem = read_label(data_root / frame.det_semantic_path, "detector semantic")
+    sem, seg = labels
     depth = with_sensor_depth(np.zeros(seg.shape), data_root / frame.depth_path, frame.depth_scale_m)
     k = np.array([frame.fx, frame.fy, frame.cx, frame.cy], np.float64)
     v_all, u_all = np.nonzero((seg > 0) & (depth > 0))
