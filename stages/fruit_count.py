@@ -193,13 +193,18 @@ def has_shape(m: dict) -> bool:
     return m["diameter_sphere_m"] is not None or m["diameter_spheroid_m"] is not None
 
 
+def end_tracks_on(cfg: Config) -> bool:
+    """Whether the end tracks are counted: end_tracks, and a lone_fragment_m to link them within."""
+    return cfg.end_tracks and cfg.lone_fragment_m > 0
+
+
 def end_fruits(tracks: list[Track], fruits: pd.DataFrame, cfg: Config) -> list[tuple[Track, dict]]:
     """The end tracks (rowmap.ends) to count as fruits, with measure's result: seen in at least min_count_frames
     frames over at least MIN_SPAN_FRAMES, with a plausible surface fit (a fruit's shape), not a fragment by
     points or pixels, in the near row, not oversize, and apart from every counted fruit of `fruits` and every
     track taken before (most points first): farther than lone_fragment_m and than the sum of the two radii (two
     fruits do not overlap; a segment merging two fruits measures wide and lies between them)."""
-    if not cfg.end_tracks or cfg.lone_fragment_m <= 0:
+    if not end_tracks_on(cfg):
         return []
     counted = fruits[fruits.counted.astype(bool)]
     taken = list(zip(counted[["x_m", "y_m", "z_m"]].to_numpy(np.float64),
@@ -408,9 +413,8 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
     fruits = pd.DataFrame(rows, columns=schemas.get("fruits").names) if rows else schemas.empty("fruits")
     lone = lone_fragments(fruits, lone_candidates, cfg.lone_fragment_m)
     fruits.loc[fruits.fruit_id.isin(lone), "counted"] = True
-    tracks = [] if not (cfg.end_tracks and cfg.lone_fragment_m > 0) else end_tracks(
-        frames, pf, ctx.data_root, dropped_segments(inputs.get("detections_filtered")), cfg.lone_fragment_m / 2,
-        cfg.max_points_per_view, cfg.min_points)
+    tracks = end_tracks(frames, pf, ctx.data_root, dropped_segments(inputs.get("detections_filtered")),
+                        cfg.lone_fragment_m / 2, cfg.max_points_per_view, cfg.min_points) if end_tracks_on(cfg) else []
     ends = end_fruits(tracks, fruits, cfg)
     added = end_fruit_rows(ends, int(max(fruits.fruit_id, default=0)) + 1)
     for r, (t, _) in zip(added, ends):
