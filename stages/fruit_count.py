@@ -423,10 +423,10 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
     if added:
         fruits = pd.concat([fruits, pd.DataFrame(added, columns=fruits.columns)], ignore_index=True)
     near = fruits[fruits.counted.astype(bool)]
-    counts = pd.DataFrame([{"class_id": c.id, "class_name": c.name, "count": int((near.class_id == c.id).sum()),
-                            "mean_diameter_m": (float(near.loc[near.class_id == c.id, "diameter_m"].dropna().mean())
-                                                if near.loc[near.class_id == c.id, "diameter_m"].notna().any() else None)}
-                           for c in DEFAULT_CLASSES if c.is_thing], columns=schemas.get("counts").names)
+    things = [(c, near[near.class_id == c.id]) for c in DEFAULT_CLASSES if c.is_thing]
+    counts = pd.DataFrame([{"class_id": c.id, "class_name": c.name, "count": len(of_c),
+                            "mean_diameter_m": float(of_c.diameter_m.mean()) if of_c.diameter_m.notna().any() else None}
+                           for c, of_c in things], columns=schemas.get("counts").names)
     pcd = o3d.geometry.PointCloud()
     if cloud_pts:
         pcd.points = o3d.utility.Vector3dVector(np.concatenate(cloud_pts))
@@ -459,8 +459,8 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
                  f"frames see them (the recording's ends, failed windows; end_tracks): counted, without fused pixels")
     if n_frag:
         ctx.note(f"{n_frag} near-row fruits not counted: fragments (under {cfg.min_count_frames} fused frames or "
-                 f"under {cfg.min_count_points} points or pixels at 320x180), unconfirmed by the detector or wider than "
-                 f"max_count_diameter_m; counted = false")
+                 f"under {cfg.min_count_points} points or pixels at 320x180), unconfirmed by the detector or wider "
+                 f"than max_count_diameter_m; counted = false")
     ctx.summary.update(fruits=len(fruits), counted=len(near), far_row=n_far, fragments=n_frag, unconfirmed=len(unconf),
                        oversize=len(too_wide), lone_fragments=len(lone), end_fruits=len(ends),
                        **{f"count_{c}": int(n) for c, n in zip(counts.class_name, counts["count"])})

@@ -72,8 +72,11 @@ def dot3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 class FruitModels(dict):
     """{fruit id: FruitModel}, with the queries one frame's evidence needs."""
 
-    typical_radius: float = np.nan
-    """m: the median radius of the fitted spheres of the row (fit_models)."""
+    @property
+    def typical_radius(self) -> float:
+        """m: the median radius of the fruits' spheres (nan: no fruit has one)."""
+        radii = [m.radius for m in self.values() if m.centre is not None]
+        return float(np.median(radii)) if radii else np.nan
 
     def in_view(self, hw: tuple[int, int], k: np.ndarray, c2w: np.ndarray, cfg: Config) -> dict[int, tuple]:
         """{fruit id: image box (v0, v1, u0, u1)} of the fruits whose halo ball meets the image."""
@@ -120,8 +123,6 @@ def fit_models(groups: list[list[int]], local: list[LocalFruit], views: dict, cf
                 m.points, m.centre = m.points + off, m.centre + off
                 m.refit(cfg)
         out[local[g[0]].fruit_id] = m
-    radii = [m.radius for m in out.values() if m.centre is not None]
-    out.typical_radius = float(np.median(radii)) if radii else np.nan
     return out
 
 
@@ -160,10 +161,9 @@ def update(models: FruitModels, given: dict[int, list[np.ndarray]], seg_views: d
     (`given`), not to the slots the association saw (a slot can paint two touching fruits). A fruit whose detector
     segments (`seg_views`) form several clusters is split: cluster 0 keeps its id, each other joins the fruit
     within max_match_distance_m (or its sphere), else is new; a cluster seen only as a cap gets a sphere of the
-    typical radius behind it. Returns the models and the next round's detector evidence: {(frame, segment): fruit id}
-    of the split fruits' segments."""
-    out = FruitModels()
-    out.typical_radius = models.typical_radius
+    typical radius of the models passed in behind it. Returns the models and the next round's detector evidence:
+    {(frame, segment): fruit id} of the split fruits' segments."""
+    out, typical_radius = FruitModels(), models.typical_radius
     for f, m in models.items():
         if given.get(f):
             out[f] = FruitModel(m.class_id, np.concatenate(given[f]), m.centre, m.radius).refit(cfg)
@@ -172,7 +172,7 @@ def update(models: FruitModels, given: dict[int, list[np.ndarray]], seg_views: d
     owners = {}
     for fruit, views in sorted(seg_views.items()):
         m = out[fruit]
-        labels, centres = detector_clusters(views, out.typical_radius, cfg)
+        labels, centres = detector_clusters(views, typical_radius, cfg)
         if not centres:
             continue
         ids = [fruit]
@@ -188,7 +188,7 @@ def update(models: FruitModels, given: dict[int, list[np.ndarray]], seg_views: d
             pts = np.concatenate([v.points for v in mine])
             if j == 0 or out[g].centre is None:
                 eye = np.mean([v.eye for v in mine], 0)
-                out[g] = FruitModel(m.class_id, pts).refit(cfg, behind=(eye, out.typical_radius))
+                out[g] = FruitModel(m.class_id, pts).refit(cfg, behind=(eye, typical_radius))
             else:
                 out[g].points = np.concatenate([out[g].points, pts])
         owners.update({(v.frame, v.segment): ids[lab] for v, lab in zip(views, labels) if lab >= 0})

@@ -324,7 +324,7 @@ def test_a_split_off_cluster_joins_its_neighbour_and_leaves_the_models_passed_in
     cfg = Config()
     centres = [np.array([-0.03, 0.0, 0.5]), np.array([0.03, 0.0, 0.5])]
     models = FruitModels({i + 1: model(c, cfg) for i, c in enumerate(centres)})
-    models.typical_radius = R
+    assert abs(models.typical_radius - R) < 0.1 * R
     before = {f: m.points.copy() for f, m in models.items()}
     cap = model(centres[1], cfg).points[:200]
     views = [SegmentView(frame=fid, segment=seg, n_px=300, centre=c, points=pts, eye=np.zeros(3)) for fid in range(3)
@@ -338,22 +338,22 @@ def test_a_split_off_cluster_joins_its_neighbour_and_leaves_the_models_passed_in
 @pytest.mark.parametrize("apart_m, split", [(0.08, True), (0.038, False)])
 def test_a_fruit_s_detector_segments_seen_in_one_frame_far_apart_are_two_fruits(apart_m, split):
     """A window painted two fruits as one slot (one model, its sphere around both); the detector shows them as
-    two segments, seen together in one frame only. Segments farther apart than a fruit allows (8 cm, radius
-    3 cm) are two fruits: the second cluster's segments become a new fruit's evidence. Two pieces of one fruit
-    (3.8 cm apart: a leaf cut its segment) stay one."""
+    two segments, seen together in one frame only. Segments farther apart than a fruit allows (8 cm; the row's
+    other fruits have radius 3 cm) are two fruits: the second cluster's segments become a new fruit's evidence.
+    Two pieces of one fruit (3.8 cm apart: a leaf cut its segment) stay one."""
     from rowmap.fusion.models import SegmentView, update
 
     cfg = Config()
     a, b = np.array([-apart_m / 2, 0.0, 0.5]), np.array([apart_m / 2, 0.0, 0.5])
     both = FruitModel(class_id=2, points=np.zeros((0, 3)), centre=(a + b) / 2, radius=apart_m / 2 + R / 2)
-    models = FruitModels({1: both})
-    models.typical_radius = R
+    others = {f: model(np.array([0.5 * f, 0.0, 0.5]), cfg) for f in (2, 3, 4)}   # the row's fruits, a metre away
+    models = FruitModels({1: both, **others})
     views = [SegmentView(frame=fid, segment=seg, n_px=300, centre=c, points=model(c, cfg).points[:300], eye=np.zeros(3))
              for seg, c, fids in ((1, a, (0, 1, 2)), (2, b, (2, 3))) for fid in fids]
     out, owners = update(models, {}, {1: views}, cfg)
     if split:
-        assert sorted(out) == [1, 2]
-        assert owners == {(0, 1): 1, (1, 1): 1, (2, 1): 1, (2, 2): 2, (3, 2): 2}
-        assert np.linalg.norm(out[2].centre - b) < R / 3 and np.linalg.norm(out[1].centre - a) < R / 3
+        assert sorted(out) == [1, 2, 3, 4, 5]
+        assert owners == {(0, 1): 1, (1, 1): 1, (2, 1): 1, (2, 2): 5, (3, 2): 5}
+        assert np.linalg.norm(out[5].centre - b) < R / 3 and np.linalg.norm(out[1].centre - a) < R / 3
     else:
-        assert sorted(out) == [1] and owners == {}
+        assert sorted(out) == [1, 2, 3, 4] and owners == {}
