@@ -25,7 +25,8 @@ WEIGHTS = {"render": 1.0, "detector": 0.8, "shape": 1.5, "surface": 0.6, "order"
 SHAPE_INSIDE = 0.2
 """shape cost of background on a point inside a fruit's sphere, on the half facing the camera."""
 UNKNOWN_SHAPE = 0.8
-"""shape cost of a fruit without a sphere on a point inside another fruit's sphere (0 elsewhere); with the
+"""shape cost of a fruit without a sphere, where the render or the detector names it, on a point inside another
+fruit's sphere (0 elsewhere there; 1 where nothing names it: it has no extent to claim a pixel by); with the
 weights, between render and render + SHAPE_INSIDE: that fruit takes the pixel, background does not."""
 TILE_PX = 64
 """pixels of a 320x180 image (scaled with the image): the side of the square tiles a frame is assigned in."""
@@ -43,8 +44,9 @@ def terms(ev: Evidence, cfg: Config) -> dict[str, np.ndarray]:
     excess = (ev.rel - 1.0 - cfg.margin_m / r) / (cfg.halo_factor - 1.0 + 1e-9)   # radii beyond radius + margin
     front = ~(ev.beyond > cfg.margin_m)
     inside = ((ev.rel <= 1.0 + cfg.margin_m / r) & front).any(1)
-    out["shape"] = np.c_[SHAPE_INSIDE * inside,
-                         np.where(np.isnan(ev.rel), UNKNOWN_SHAPE * inside[:, None], np.clip(excess, 0.0, 1.0))]
+    named = (cols[:, 1:] == ev.render[:, None]) | (cols[:, 1:] == ev.detector[:, None])
+    unknown = np.where(named, UNKNOWN_SHAPE * inside[:, None], 1.0)
+    out["shape"] = np.c_[SHAPE_INSIDE * inside, np.where(np.isnan(ev.rel), unknown, np.clip(excess, 0.0, 1.0))]
     on = np.isfinite(ev.gap) & front
     surface = np.minimum(np.where(on, ev.gap, np.inf) / cfg.margin_m, 1.0)
     out["surface"] = np.c_[np.ones(n), surface] * on.any(1)[:, None]
@@ -61,10 +63,10 @@ def cost(ev: Evidence, cfg: Config) -> np.ndarray:
     return total
 
 
-def tiles(ev: Evidence, shape: tuple[int, int], models: FruitModels, cfg: Config) -> Iterator[tuple]:
-    """(rows, cols) per square tile: its evidence pixels and the candidates that can win one: those without a
-    sphere, whose halo box meets the tile, or that the render or the detector names there. Any other lies outside
-    its halo ball, so it costs more than background (FAR_LOSES): the tiles give the ids every pixel against every
+def tiles(ev: Evidence, shape: tuple[int, int], cfg: Config) -> Iterator[tuple]:
+    """(rows, cols) per square tile: its evidence pixels and the candidates that can win one: those whose halo box
+    meets the tile, or that the render or the detector names there. Any other lies outside its halo ball or has
+    no sphere, so it costs more than background (FAR_LOSES): the tiles give the ids every pixel against every
     candidate gives. One tile with shape off."""
     h, w = shape
     if "shape" in cfg.terms_off or not FAR_LOSES or not len(ev.pixels):
@@ -75,7 +77,6 @@ def tiles(ev: Evidence, shape: tuple[int, int], models: FruitModels, cfg: Config
     v, u = np.divmod(ev.pixels, w)
     tile = (v // side) * per_row + u // side
     col = {int(f): j for j, f in enumerate(ev.ids)}
-    everywhere = [j for j, f in enumerate(ev.ids) if models[int(f)].centre is None]
     boxes = [(col[f], b) for f, b in (ev.boxes or {}).items() if f in col]
     order = np.argsort(tile, kind="stable")
     keys, starts = np.unique(tile[order], return_index=True)
@@ -83,7 +84,7 @@ def tiles(ev: Evidence, shape: tuple[int, int], models: FruitModels, cfg: Config
         v0, u0 = (t // per_row) * side, (t % per_row) * side
         near = [j for j, (b0, b1, c0, c1) in boxes if b0 < v0 + side and v0 < b1 and c0 < u0 + side and u0 < c1]
         named = np.r_[ev.render[rows], ev.detector[rows]]
-        yield rows, np.unique(np.r_[everywhere, near, named[named > 0] - 1].astype(np.int64))
+        yield rows, np.unique(np.r_[near, named[named > 0] - 1].astype(np.int64))
 
 
 def fused_label(frame: Frame, models: FruitModels, owners: dict, cfg: Config
@@ -91,7 +92,7 @@ def fused_label(frame: Frame, models: FruitModels, owners: dict, cfg: Config
     """One frame's fused ids [H, W] (-1: a dropped slot left background), its evidence, and its pixels' ids [P]."""
     ev = pixel_evidence(frame, models, owners, cfg)
     ids = np.zeros(len(ev.pixels), np.int64)
-    for rows, cols in tiles(ev, frame.label.shape, models, cfg):
+    for rows, cols in tiles(ev, frame.label.shape, cfg):
         part = ev.part(rows, cols, models, frame.c2w[:3, 3], cfg)
         c = cost(part, cfg)
         c[np.arange(len(c)), part.render] -= 1e-6   # ties go to the render's option
