@@ -25,8 +25,8 @@ WEIGHTS = {"render": 1.0, "detector": 0.8, "shape": 1.5, "surface": 0.6, "order"
 SHAPE_INSIDE = 0.2
 """shape cost of background on a point inside a fruit's sphere, on the half facing the camera."""
 UNKNOWN_SHAPE = 0.8
-"""shape cost of a fruit without a sphere, where the render or the detector names it, on a point inside another
-fruit's sphere (0 elsewhere there; 1 where nothing names it: it has no extent to claim a pixel by); with the
+"""shape cost of a fruit without a sphere that the render or the detector names, on a point inside another
+fruit's sphere (0 on a point in none; 1 where nothing names it: it has no extent to claim a pixel by). With the
 weights, between render and render + SHAPE_INSIDE: that fruit takes the pixel, background does not."""
 TILE_PX = 64
 """pixels of a 320x180 image (scaled with the image): the side of the square tiles a frame is assigned in."""
