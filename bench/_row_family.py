@@ -156,6 +156,18 @@ UNSEEN: tuple[FamilyRow, ...] = (
     FamilyRow("unseen6_weak", "a weak detector and strong drift at light density",
               seed=804, fruits_per_m=9.5, det_miss_rate=0.305, det_false_pos_rate=0.57, det_merge_rate=0.067,
               odom_drift_m_per_m=0.051, odom_yaw_drift_deg_per_m=3.55, n_frames=132),
+    FamilyRow("unseen7_medium", "medium density, a good detector, typical drift",
+              seed=901, fruits_per_m=23.5, det_miss_rate=0.145, det_false_pos_rate=0.305, det_merge_rate=0.0665,
+              odom_drift_m_per_m=0.0335, odom_yaw_drift_deg_per_m=2.15, n_frames=148),
+    FamilyRow("unseen7_dense", "dense, a noisy detector, mild drift",
+              seed=902, fruits_per_m=31.5, det_miss_rate=0.245, det_false_pos_rate=0.445, det_merge_rate=0.092,
+              odom_drift_m_per_m=0.0265, odom_yaw_drift_deg_per_m=1.75, n_frames=164),
+    FamilyRow("unseen7_crowded", "crowded, many merges, few false positives, drift between typical and strong",
+              seed=903, fruits_per_m=37.5, det_miss_rate=0.175, det_false_pos_rate=0.285, det_merge_rate=0.1185,
+              odom_drift_m_per_m=0.0415, odom_yaw_drift_deg_per_m=2.65, n_frames=152),
+    FamilyRow("unseen7_weak", "a weak detector and strong drift at light density",
+              seed=904, fruits_per_m=11.5, det_miss_rate=0.315, det_false_pos_rate=0.545, det_merge_rate=0.0705,
+              odom_drift_m_per_m=0.049, odom_yaw_drift_deg_per_m=3.45, n_frames=136),
 )
 """Unseen rows (`pag bench rows --unseen`): seeds and knob values in no family or held-out row. Their outputs
 are read once, when a design is final, and reported as they come; nothing is tuned on them. The first four
@@ -166,8 +178,9 @@ within the family's ranges, and are read once after those changes; the `unseen4_
 that reading (9f96e52), before the changes for the fruits at a recording's ends, and are read once after them;
 the `unseen5_` rows were defined after that reading (97970ce), before the fusion's rules were measured one by
 one and those that help no row dropped, and are read once after that; the `unseen6_` rows were defined after
-the fix for fruits without a sphere (2506cc5), with no change of the fusion since, and are read once. Rows beyond
-the family's 8-40 fruits/m or 0.35 miss rate (0.40, 0.7 false positives per frame) test that mechanisms
+the fix for fruits without a sphere (2506cc5), with no change of the fusion since, and are read once; the
+`unseen7_` rows were defined after that reading (d5fb20b), before any later change, and are read once after it.
+Rows beyond the family's 8-40 fruits/m or 0.35 miss rate (0.40, 0.7 false positives per frame) test that mechanisms
 extrapolate."""
 
 QUICK: tuple[str, ...] = ("typical", "dense", "poor_detector", "bad_odometry")
