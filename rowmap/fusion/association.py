@@ -181,10 +181,13 @@ class MaskOverlaps:
         return out if wa == lo else [(y, x, n) for x, y, n in out]
 
     def overlap(self, wa: int, codes_a: dict, wb: int, codes_b: dict) -> tuple[int, int]:
-        """(intersection, union) pixels of two windows' masks ({frame: codes}) over the frames both rendered."""
+        """(intersection, union) pixels of two windows' masks ({frame: codes}) over the frames both rendered and
+        both masks hold: a window that does not paint the fruit in a frame says nothing of the other's mask."""
         inter = union = 0
         for f in self.shared.get((min(wa, wb), max(wa, wb)), []):
-            ca, cb = codes_a.get(f, ()), codes_b.get(f, ())
+            if f not in codes_a or f not in codes_b:
+                continue
+            ca, cb = codes_a[f], codes_b[f]
             for x, y, n in self.joint(wa, wb, f):
                 union += n * (x in ca or y in cb)
                 inter += n * (x in ca and y in cb)
@@ -215,7 +218,7 @@ MAX_PAIR_REACH = 4.0
 
 def pair_cost(a: LocalFruit, b: LocalFruit, overlaps: MaskOverlaps, cfg: Config) -> float:
     """The cost of two windows' local fruits being one, d = centre distance / max_match_distance_m: (1 - mask IoU)
-    x (1 + d) on shared frames, 0.5 + d without; inf over MAX_PAIR_COST, past MAX_PAIR_REACH or under min_mask_iou.
+    x (1 + d) on frames both show, 0.5 + d without; inf over MAX_PAIR_COST, past MAX_PAIR_REACH or under min_mask_iou.
     Where masks agree, distance matters little: a window that saw a fruit at its image border can place it cm off."""
     dist = centre_distance(a, b)
     if dist > MAX_PAIR_REACH * cfg.max_match_distance_m:

@@ -311,10 +311,31 @@ def test_a_window_that_paints_a_fruit_with_two_slots_in_turn_gives_it_one_id():
     masks = masks_of((4, 8), {(0, 2): [(1, slice(0, 4))], (1, 2): [(5, slice(0, 4))],
                               (1, 8): [(6, slice(2, 6))], (2, 8): [(9, slice(2, 6))],
                               (1, 10): [(6, slice(2, 6))], (2, 10): [(9, slice(2, 6))]})
-    # window 1 shows it on slot 6 where 2 sees it
-    assert association.pair_cost(b1, w2, association.MaskOverlaps(masks), cfg) == np.inf
+    # window 1 shows it on slot 6 where 2 sees it: slot 5 is matched as a pair without a frame both show
+    overlaps = association.MaskOverlaps(masks)
+    assert association.pair_cost(b1, w2, overlaps, cfg) == pytest.approx(0.5 + 0.03 / 0.04)
+    assert association.pair_cost(b2, w2, overlaps, cfg) == 0.0
     groups = sorted(sorted(g) for g in association.associate([a, b1, b2, w2], masks, cfg))
     assert groups == [[0, 1, 2, 3]]
+
+
+def test_a_slot_a_window_paints_a_fruit_with_only_after_their_shared_frames_joins_the_other_windows_fruit():
+    # window 1 renders frames 4-10 and shares frame 4 with window 0, but paints the fruit (slot 5, 2 cm from
+    # window 0's centre) only from frame 8; in frame 4 its slot 5 lies on another fruit, 30 cm away
+    cfg = panoptic_fusion.Config()
+    lf = association.LocalFruit
+    a = lf(0, 1, 0, [(2, 0), (4, 0)], 400, 2, np.zeros(3))
+    other = lf(1, 5, 1, [(4, 0), (6, 0)], 400, 2, np.array([0.3, 0.0, 0.0]))
+    later = lf(1, 5, 0, [(8, 0), (10, 0)], 400, 2, np.array([0.02, 0.0, 0.0]))
+    masks = masks_of((4, 8), {(0, 4): [(1, slice(0, 3))], (1, 4): [(5, slice(5, 8))]})
+    overlaps = association.MaskOverlaps(masks)
+    assert association.pair_cost(a, later, overlaps, cfg) == pytest.approx(0.5 + 0.02 / 0.04)
+    assert association.pair_cost(a, other, overlaps, cfg) == np.inf
+    assert sorted(sorted(g) for g in association.associate([a, other, later], masks, cfg)) == [[0, 2], [1]]
+    # where window 1 paints that fruit's pixels with slot 5 in frame 4 and they miss window 0's, they stay apart
+    later = lf(1, 5, 0, [(4, 0), (8, 0), (10, 0)], 400, 2, np.array([0.02, 0.0, 0.0]))
+    masks[(1, 4)] = masks_of((4, 8), {(1, 4): [(5, slice(4, 8))]})[(1, 4)]
+    assert association.pair_cost(a, later, association.MaskOverlaps(masks), cfg) == np.inf
 
 
 def test_fruits_whose_masks_disagree_on_a_shared_frame_never_join_one_id_through_a_third_window():
@@ -714,7 +735,9 @@ def test_evaluate_is_worse_on_split_slots_and_missed_fruits(make_row, perfect_ro
     assert metric(ev, "window_000", "pq") == pytest.approx(1.0)            # per-frame panoptics untouched
     assert metric(ev, "window_001", "pq") < metric(good, "window_001", "pq")
     assert metric(ev, "window_001", "miou") < 1.0
-    assert metric(ev, "row", "id_consistency") < metric(good, "row", "id_consistency")
+    # the fusion gives window 0's two slots of each fruit one row id; the lost fruit's pixels still cost PQ
+    assert metric(ev, "row", "id_consistency") == metric(good, "row", "id_consistency") == 1.0
+    assert metric(ev, "row", "pq") < metric(good, "row", "pq")
 
 
 def test_evaluate_without_ground_truth_is_an_empty_table_with_a_note(perfect_row, tmp_path):
