@@ -168,6 +168,18 @@ UNSEEN: tuple[FamilyRow, ...] = (
     FamilyRow("unseen7_weak", "a weak detector and strong drift at light density",
               seed=904, fruits_per_m=11.5, det_miss_rate=0.315, det_false_pos_rate=0.545, det_merge_rate=0.0705,
               odom_drift_m_per_m=0.049, odom_yaw_drift_deg_per_m=3.45, n_frames=136),
+    FamilyRow("unseen8_medium", "medium density, a good detector, typical drift",
+              seed=1001, fruits_per_m=24.5, det_miss_rate=0.155, det_false_pos_rate=0.315, det_merge_rate=0.0635,
+              odom_drift_m_per_m=0.0325, odom_yaw_drift_deg_per_m=2.25, n_frames=146),
+    FamilyRow("unseen8_dense", "dense, a noisy detector, mild drift",
+              seed=1002, fruits_per_m=32.5, det_miss_rate=0.255, det_false_pos_rate=0.455, det_merge_rate=0.094,
+              odom_drift_m_per_m=0.0275, odom_yaw_drift_deg_per_m=1.85, n_frames=166),
+    FamilyRow("unseen8_crowded", "crowded, many merges, few false positives, drift between typical and strong",
+              seed=1003, fruits_per_m=36.5, det_miss_rate=0.1725, det_false_pos_rate=0.275, det_merge_rate=0.1215,
+              odom_drift_m_per_m=0.0405, odom_yaw_drift_deg_per_m=2.55, n_frames=154),
+    FamilyRow("unseen8_weak", "a weak detector and strong drift at light density",
+              seed=1004, fruits_per_m=12.5, det_miss_rate=0.325, det_false_pos_rate=0.535, det_merge_rate=0.0685,
+              odom_drift_m_per_m=0.0475, odom_yaw_drift_deg_per_m=3.35, n_frames=134),
 )
 """Unseen rows (`pag bench rows --unseen`): seeds and knob values in no family or held-out row. Their outputs
 are read once, when a design is final, and reported as they come; nothing is tuned on them. The first four
@@ -179,7 +191,8 @@ that reading (9f96e52), before the changes for the fruits at a recording's ends,
 the `unseen5_` rows were defined after that reading (97970ce), before the fusion's rules were measured one by
 one and those that help no row dropped, and are read once after that; the `unseen6_` rows were defined after
 the fix for fruits without a sphere (2506cc5), with no change of the fusion since, and are read once; the
-`unseen7_` rows were defined after that reading (d5fb20b), before the next change, and read once after it.
+`unseen7_` rows were defined after that reading (d5fb20b), before the next change, and read once after it;
+the `unseen8_` rows were defined after that reading (a9104dc), before any later change, and are read once after it.
 Rows beyond the family's 8-40 fruits/m or 0.35 miss rate (0.40, 0.7 false positives per frame) test that mechanisms
 extrapolate."""
 
