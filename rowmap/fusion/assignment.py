@@ -22,6 +22,9 @@ from rowmap.geometry import subsample
 
 WEIGHTS = {"render": 1.0, "detector": 0.8, "shape": 1.5, "surface": 0.6, "order": 1.5}
 """the weight of each term in the cost (render 1 sets the scale)."""
+OTHER_FRUIT = 0.5
+"""detector term of a fruit a segment does not name, on its pixels (background pays 1): a segment says more surely
+that some fruit lies there than which one (it can merge two fruits and is named for the one painted most)."""
 SHAPE_INSIDE = 0.2
 """shape cost of background on a point inside a fruit's sphere, on the half facing the camera."""
 UNKNOWN_SHAPE = 0.8
@@ -38,8 +41,9 @@ def terms(ev: Evidence, cfg: Config) -> dict[str, np.ndarray]:
     """Each term of the cost, [P, F + 1] (column 0 = background)."""
     n, cols = len(ev.pixels), np.arange(len(ev.ids) + 1)[None]
     out = {"render": ev.confidence[:, None] * (cols != ev.render[:, None])}
-    det = np.where(ev.detector[:, None] > 0, cols != ev.detector[:, None], cols == 0)
-    out["detector"] = ((ev.detector >= 0)[:, None] & det).astype(np.float64)
+    named = ev.detector[:, None]
+    det = np.where(named > 0, np.where(cols == named, 0.0, np.where(cols == 0, 1.0, OTHER_FRUIT)), cols == 0)
+    out["detector"] = (ev.detector >= 0)[:, None] * det
     r = ev.radius[None]
     excess = (ev.rel - 1.0 - cfg.margin_m / r) / (cfg.halo_factor - 1.0 + 1e-9)   # radii beyond radius + margin
     front = ~(ev.beyond > cfg.margin_m)
