@@ -192,7 +192,7 @@ the `unseen5_` rows were defined after that reading (97970ce), before the fusion
 one and those that help no row dropped, and are read once after that; the `unseen6_` rows were defined after
 the fix for fruits without a sphere (2506cc5), with no change of the fusion since, and are read once; the
 `unseen7_` rows were defined after that reading (d5fb20b), before the next change, and read once after it;
-the `unseen8_` rows were defined after that reading (a9104dc), before any later change, and are read once after it.
+the `unseen8_` rows were defined after that reading (a9104dc), before the next change, and read once after it.
 Rows beyond the family's 8-40 fruits/m or 0.35 miss rate (0.40, 0.7 false positives per frame) test that mechanisms
 extrapolate."""
 
