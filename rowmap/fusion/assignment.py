@@ -41,8 +41,8 @@ def terms(ev: Evidence, cfg: Config) -> dict[str, np.ndarray]:
     """Each term of the cost, [P, F + 1] (column 0 = background)."""
     n, cols = len(ev.pixels), np.arange(len(ev.ids) + 1)[None]
     out = {"render": ev.confidence[:, None] * (cols != ev.render[:, None])}
-    named = ev.detector[:, None]
-    det = np.where(named > 0, np.where(cols == named, 0.0, np.where(cols == 0, 1.0, OTHER_FRUIT)), cols == 0)
+    seg_fruit, unnamed = ev.detector[:, None], np.where(cols == 0, 1.0, OTHER_FRUIT)   # [P, 1], [1, F + 1]
+    det = np.where(seg_fruit > 0, np.where(cols == seg_fruit, 0.0, unnamed), cols == 0)
     out["detector"] = (ev.detector >= 0)[:, None] * det
     r = ev.radius[None]
     excess = (ev.rel - 1.0 - cfg.margin_m / r) / (cfg.halo_factor - 1.0 + 1e-9)   # radii beyond radius + margin
