@@ -180,6 +180,18 @@ UNSEEN: tuple[FamilyRow, ...] = (
     FamilyRow("unseen8_weak", "a weak detector and strong drift at light density",
               seed=1004, fruits_per_m=12.5, det_miss_rate=0.325, det_false_pos_rate=0.535, det_merge_rate=0.0685,
               odom_drift_m_per_m=0.0475, odom_yaw_drift_deg_per_m=3.35, n_frames=134),
+    FamilyRow("unseen9_medium", "medium density, a good detector, typical drift",
+              seed=1101, fruits_per_m=21.5, det_miss_rate=0.135, det_false_pos_rate=0.295, det_merge_rate=0.0595,
+              odom_drift_m_per_m=0.0345, odom_yaw_drift_deg_per_m=2.35, n_frames=142),
+    FamilyRow("unseen9_dense", "dense, a noisy detector, mild drift",
+              seed=1102, fruits_per_m=33.5, det_miss_rate=0.265, det_false_pos_rate=0.465, det_merge_rate=0.0965,
+              odom_drift_m_per_m=0.0265, odom_yaw_drift_deg_per_m=1.75, n_frames=170),
+    FamilyRow("unseen9_crowded", "crowded, many merges, few false positives, drift between typical and strong",
+              seed=1103, fruits_per_m=35.5, det_miss_rate=0.1775, det_false_pos_rate=0.265, det_merge_rate=0.1195,
+              odom_drift_m_per_m=0.0415, odom_yaw_drift_deg_per_m=2.65, n_frames=158),
+    FamilyRow("unseen9_weak", "a weak detector and strong drift at light density",
+              seed=1104, fruits_per_m=14, det_miss_rate=0.335, det_false_pos_rate=0.525, det_merge_rate=0.0715,
+              odom_drift_m_per_m=0.0485, odom_yaw_drift_deg_per_m=3.4, n_frames=138),
 )
 """Unseen rows (`pag bench rows --unseen`): seeds and knob values in no family or held-out row. Their outputs
 are read once, when a design is final, and reported as they come; nothing is tuned on them. The first four
@@ -192,7 +204,8 @@ the `unseen5_` rows were defined after that reading (97970ce), before the fusion
 one and those that help no row dropped, and are read once after that; the `unseen6_` rows were defined after
 the fix for fruits without a sphere (2506cc5), with no change of the fusion since, and are read once; the
 `unseen7_` rows were defined after that reading (d5fb20b), before the next change, and read once after it;
-the `unseen8_` rows were defined after that reading (a9104dc), before the next change, and read once after it.
+the `unseen8_` rows were defined after that reading (a9104dc), before the next change, and read once after it;
+the `unseen9_` rows were defined after that reading (15ad44c), before any later change, and are read once after it.
 Rows beyond the family's 8-40 fruits/m or 0.35 miss rate (0.40, 0.7 false positives per frame) test that mechanisms
 extrapolate."""
 
