@@ -200,10 +200,12 @@ def end_tracks_on(cfg: Config) -> bool:
 
 def end_fruits(tracks: list[Track], fruits: pd.DataFrame, cfg: Config) -> list[tuple[Track, dict]]:
     """The end tracks (rowmap.ends) to count as fruits, with measure's result: seen in at least min_count_frames
-    frames over at least MIN_SPAN_FRAMES, with a plausible surface fit (a fruit's shape), not a fragment by
-    points or pixels, in the near row, not oversize, and apart from every counted fruit of `fruits` and every
-    track taken before (most points first): farther than lone_fragment_m and than the sum of the two radii (two
-    fruits do not overlap; a segment merging two fruits measures wide and lies between them)."""
+    frames over at least MIN_SPAN_FRAMES, not a fragment by points or pixels, in the near row, not oversize, and
+    apart from every counted fruit of `fruits` and every track taken before (most points first): farther than
+    lone_fragment_m and than the sum of the two radii (two fruits do not overlap; a segment merging two fruits
+    measures wide and lies between them). No surface fit is asked for: a fruit at a recording's end is seen as a
+    shallow cap at the image border, which fits none, and a track is the detector's in each of its frames, the
+    confirmation a fused fruit without a fit needs (detector_support)."""
     if not end_tracks_on(cfg):
         return []
     counted = fruits[fruits.counted.astype(bool)]
@@ -215,10 +217,10 @@ def end_fruits(tracks: list[Track], fruits: pd.DataFrame, cfg: Config) -> list[t
             continue
         m = measure(np.concatenate(t.points), cfg)
         near_row = float(np.median(np.concatenate(t.depths))) <= cfg.max_depth_m
-        if (not has_shape(m) or not near_row or oversize(m["diameter_m"], cfg)
-                or is_fragment(len(t.frames), m["n_points"], sum(t.ref_px), cfg)):
+        fragment = is_fragment(len(t.frames), m["n_points"], sum(t.ref_px), cfg)
+        if fragment or not near_row or oversize(m["diameter_m"], cfg):
             continue
-        p, r = np.array([m["x_m"], m["y_m"], m["z_m"]], np.float64), m["diameter_m"] / 2
+        p, r = np.array([m["x_m"], m["y_m"], m["z_m"]], np.float64), (m["diameter_m"] or 0.0) / 2
         if all(np.linalg.norm(p - q) > max(cfg.lone_fragment_m, r + rq) for q, rq in taken):
             out.append((t, m))
             taken.append((p, r))

@@ -866,11 +866,14 @@ def test_a_fruit_the_detector_alone_tracks_at_a_recording_end_is_counted_unless_
     once = end_track(rng, [-0.15, 0.0, 1.0], [119])                       # one frame: a stray segment
     glimpse = end_track(rng, [-0.3, 0.1, 1.0], [118, 119])                # in view for two frames only
     by_fragment = end_track(rng, [0.20, 0.0, 1.0], [0, 1, 2])             # the fragment's fruit, seen enough
-    flat = end_track(rng, None, [0, 1, 2], points=np.c_[rng.uniform(-0.03, 0.03, (400, 2)) + [-0.3, 0.0],
-                                                         np.full(400, 1.0)])   # a leaf: no fruit shape
+    # a fruit at the image border: a cap of 25 degrees around the ray, too shallow for any surface fit
+    d = front_cap(rng, [0.0, 0.0, 0.0], 1.0, n=1000)
+    cap = [-0.3, 0.0, 1.0] + 0.035 * d[d[:, 2] < -np.cos(np.radians(25))]
+    assert not fruit_count.has_shape(fruit_count.measure(cap, cfg))
+    shallow = end_track(rng, None, [0, 1, 2], points=cap)
     far = end_track(rng, [0.4, 0.0, 2.0], [0, 1, 2])                      # the far row
-    picked = fruit_count.end_fruits([alone, at_fruit, once, glimpse, by_fragment, flat, far], fruits, cfg)
-    assert [t for t, _ in picked] == [alone, by_fragment] or [t for t, _ in picked] == [by_fragment, alone]
+    picked = fruit_count.end_fruits([alone, at_fruit, once, glimpse, by_fragment, shallow, far], fruits, cfg)
+    assert sorted(map(id, (t for t, _ in picked))) == sorted(map(id, [alone, by_fragment, shallow]))
     m = dict((id(t), m) for t, m in picked)[id(alone)]
     assert np.linalg.norm([m["x_m"] - 0.12, m["y_m"], m["z_m"] - 1.0]) < 0.01 and abs(m["diameter_m"] - 0.07) < 0.01
     # two tracks of one fruit count once; a track overlapping a counted fruit's sphere does not count, however
