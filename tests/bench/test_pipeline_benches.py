@@ -40,6 +40,8 @@ def test_holdout_rows_share_no_seed_or_knob_set_with_the_family():
 def test_unseen_rows_share_no_seed_or_knob_value_with_any_earlier_row():
     earlier = (*FAMILY, *HOLDOUT)
     assert len(UNSEEN) >= 4 and not {r.seed for r in UNSEEN} & {r.seed for r in earlier}
+    every = (*earlier, *UNSEEN)
+    assert len({r.seed for r in every}) == len(every)   # a new unseen row reuses no unseen row's seed either
     for knob in ("fruits_per_m", "det_miss_rate", "det_false_pos_rate", "det_merge_rate", "odom_drift_m_per_m",
                  "odom_yaw_drift_deg_per_m", "n_frames"):
         assert not {getattr(r, knob) for r in UNSEEN} & {getattr(r, knob) for r in earlier}, knob
