@@ -103,7 +103,7 @@ def test_a_detector_segment_merging_two_fruits_does_not_merge_their_ids():
     assert (fused == label).all()
     # the render paints part of fruit 2 as leaf: the segment, named for fruit 1 (painted on most of it), still
     # shows a fruit there, and fruit 2's model says which
-    v, u = np.nonzero(who == 1)
+    u = np.nonzero(who == 1)[1]   # image columns of fruit 2
     leaf = (who == 1) & (np.arange(HW[1])[None] > u.mean())
     label[leaf] = 0
     fused = fuse(centres, label, depth, segments=merged)
