@@ -204,6 +204,18 @@ UNSEEN: tuple[FamilyRow, ...] = (
     FamilyRow("unseen10_weak", "a weak detector and strong drift at light density",
               seed=1204, fruits_per_m=13.5, det_miss_rate=0.34, det_false_pos_rate=0.515, det_merge_rate=0.0695,
               odom_drift_m_per_m=0.0495, odom_yaw_drift_deg_per_m=3.3, n_frames=140),
+    FamilyRow("unseen11_medium", "medium density, a good detector, typical drift",
+              seed=1301, fruits_per_m=20.75, det_miss_rate=0.1575, det_false_pos_rate=0.3075, det_merge_rate=0.0585,
+              odom_drift_m_per_m=0.0315, odom_yaw_drift_deg_per_m=2.37, n_frames=147),
+    FamilyRow("unseen11_dense", "dense, a noisy detector, mild drift",
+              seed=1302, fruits_per_m=31.75, det_miss_rate=0.2325, det_false_pos_rate=0.4175, det_merge_rate=0.0975,
+              odom_drift_m_per_m=0.0347, odom_yaw_drift_deg_per_m=2.47, n_frames=167),
+    FamilyRow("unseen11_crowded", "crowded, many merges, few false positives, drift between typical and strong",
+              seed=1303, fruits_per_m=36.25, det_miss_rate=0.1925, det_false_pos_rate=0.2675, det_merge_rate=0.1165,
+              odom_drift_m_per_m=0.0425, odom_yaw_drift_deg_per_m=2.75, n_frames=157),
+    FamilyRow("unseen11_weak", "a weak detector and strong drift at light density",
+              seed=1304, fruits_per_m=15.25, det_miss_rate=0.3175, det_false_pos_rate=0.5475, det_merge_rate=0.0745,
+              odom_drift_m_per_m=0.0465, odom_yaw_drift_deg_per_m=3.15, n_frames=137),
 )
 """Unseen rows (`pag bench rows --unseen`): seeds and knob values in no family or held-out row. Their outputs
 are read once, when a design is final, and reported as they come; nothing is tuned on them. The first four
@@ -220,7 +232,9 @@ the `unseen8_` rows were defined after that reading (a9104dc), before the next c
 the `unseen9_` rows were defined after that reading (15ad44c), before the next change, and read once after it;
 the `unseen10_` rows were defined after that reading (1292a31), before any later change, and are read once after it
 (unseen10_dense and unseen10_crowded as first defined, seeds 1202 and 1203, shared a miss rate with family rows and
-were read once; they were then redefined with new seeds and knob values, and read once again).
+were read once; they were then redefined with new seeds and knob values, and read once again); the `unseen11_`
+rows, with values in no other row (unseen ones included), were defined after that reading (4c83c6c), before any
+later change, and are read once after it.
 Rows beyond the family's 8-40 fruits/m or 0.35 miss rate (0.40, 0.7 false positives per frame) test that mechanisms
 extrapolate."""
 
