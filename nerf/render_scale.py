@@ -30,8 +30,8 @@ def scaled_model(model, scale: float):
 
 
 def to_full_size(out: dict, wh: tuple[int, int]) -> dict:
-    """A render made at a working scale, resized to the image size wh = (W, H): rgb bilinear; depth, opacity
-    and labels nearest-neighbour. Tensors stay tensors, arrays stay arrays."""
+    """A render made at a working scale, resized to the image size wh = (W, H): rgb and fruit probability
+    bilinear; depth, opacity and labels nearest-neighbour. Tensors stay tensors, arrays stay arrays."""
     import cv2
     import torch
 
@@ -46,9 +46,9 @@ def to_full_size(out: dict, wh: tuple[int, int]) -> dict:
         return torch.from_numpy(r).to(a.device) if is_tensor else r
 
     res = dict(out)
-    for key in ("rgb", "depth", "opacity", "semantic", "instance"):
+    for key in ("rgb", "depth", "opacity", "semantic", "instance", "fruit"):
         if key in out:
-            res[key] = resize(out[key], key == "rgb")
+            res[key] = resize(out[key], key in ("rgb", "fruit"))
     return res
 
 

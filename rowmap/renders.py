@@ -1,12 +1,14 @@
 """The render contract between nerf_fit and the stages after it.
 
 A fitted window renders its validation frames: colour, depth and (with the panoptic phase) semantic and
-instance images. nerf_fit writes them into its `nerf` folder, named by `file_name`, encoded by `encode`, and
-lists every file it wrote in the `renders` table (window_id, frame_id, kind, path; schemas/renders.py).
-Readers look paths up in that table (`Renders`) and decode them with `Renders.read`; nobody rebuilds a path.
+instance images and the fruit probability. nerf_fit writes them into its `nerf` folder, named by `file_name`,
+encoded by `encode`, and lists every file it wrote in the `renders` table (window_id, frame_id, kind, path;
+schemas/renders.py). Readers look paths up in that table (`Renders`) and decode them with `Renders.read`;
+nobody rebuilds a path.
 
 Encodings (PNG): rgb 8-bit colour; depth 16-bit millimetres (0 = no depth, clipped at 65.535 m);
-semantic 8-bit class id (255 = void); instance 16-bit window-local slot id (0 = stuff or none).
+semantic 8-bit class id (255 = void); instance 16-bit window-local slot id (0 = stuff or none); fruit 8-bit
+probability of the thing classes x 255 (before the post-processing that makes semantic and instance).
 """
 from __future__ import annotations
 
@@ -17,7 +19,7 @@ import pandas as pd
 
 from pipeline.images import ImageError, read_label, read_rgb, write_png
 
-KINDS = ("rgb", "depth", "semantic", "instance")
+KINDS = ("rgb", "depth", "semantic", "instance", "fruit")
 PANOPTIC_KINDS = ("semantic", "instance", "depth")
 """what a panoptic reader (fusion) needs of a frame."""
 DEPTH_SCALE_M = 0.001
@@ -32,8 +34,9 @@ def file_name(window_id: int, kind: str, frame_id: int) -> str:
 
 
 def encode(kind: str, image) -> np.ndarray:
-    """The stored array of one render: rgb float [H, W, 3] in [0, 1] -> uint8 (uint8 kept as it is); depth float [H, W] metres ->
-    uint16 mm; semantic -> uint8; instance -> uint16. Accepts numpy arrays or (CPU or GPU) torch tensors."""
+    """The stored array of one render: rgb float [H, W, 3] in [0, 1] -> uint8; depth float [H, W] metres ->
+    uint16 mm; semantic -> uint8; instance -> uint16; fruit float [H, W] in [0, 1] -> uint8 x 255 (rgb and fruit
+    given as uint8 are kept as they are). Accepts numpy arrays or (CPU or GPU) torch tensors."""
     a = image.detach().cpu().numpy() if hasattr(image, "detach") else np.asarray(image)
     if kind == "rgb":
         return a if a.dtype == np.uint8 else (np.clip(a, 0, 1) * 255).round().astype(np.uint8)
@@ -43,6 +46,8 @@ def encode(kind: str, image) -> np.ndarray:
         return a.astype(np.uint8)
     if kind == "instance":
         return a.astype(np.uint16)
+    if kind == "fruit":
+        return a if a.dtype == np.uint8 else (np.clip(a, 0, 1) * 255).round().astype(np.uint8)
     raise ValueError(f"unknown render kind {kind!r}; kinds: {list(KINDS)}")
 
 
@@ -78,7 +83,8 @@ class Renders:
         return {f for (w, f, k) in self._paths if w == int(window_id) and k == kind}
 
     def read(self, window_id: int, frame_id: int, kind: str, shape: tuple[int, int] | None = None) -> np.ndarray:
-        """A decoded render: rgb uint8 [H, W, 3], depth float32 metres [H, W], semantic and instance ids [H, W].
+        """A decoded render: rgb uint8 [H, W, 3], depth float32 metres [H, W], semantic and instance ids [H, W],
+        fruit float32 probability [H, W].
         `shape` (height, width) is checked when given."""
         rel = self.relpath(window_id, frame_id, kind)
         if rel is None:
@@ -91,6 +97,8 @@ class Renders:
             img = read_rgb(path)
         elif kind == "depth":
             img = read_label(path, what).astype(np.float32) * np.float32(DEPTH_SCALE_M)
+        elif kind == "fruit":
+            img = read_label(path, what).astype(np.float32) / np.float32(255)
         else:
             img = read_label(path, what)
         if shape is not None and img.shape[:2] != tuple(shape):

@@ -105,8 +105,9 @@ class FrameReader:
         fruit[(fruit == 0) & (keys != 0)] = -1
         label = fruit[at.reshape(codes.shape)]   # row fruit id; 0 stuff, -1 a dropped slot
         depth = with_sensor_depth(self.render(fid, "depth"), self.ctx.abspath(fr.depth_path), fr.depth_scale_m)
+        fruit = self.render(fid, "fruit") if self.renders.has(wid, fid, "fruit") else None
         return Frame(fid, label, depth, fruit_segments(fr, self.ctx.data_root, self.dropped.get(fid)), intrinsics(fr),
-                     self.nearest.c2w[fid])
+                     self.nearest.c2w[fid], fruit)
 
 
 def write_frame(fid: int, fused: np.ndarray, classes: np.ndarray, reader: FrameReader, n_windows: int,

@@ -17,7 +17,8 @@ from nerf.render import pixel_rays
 def render_panoptic(model: NerfModel, pres: PanopticResult, i: int | None = None, c2w: Tensor | None = None,
                     k: Tensor | None = None, chunk: int = 8192) -> dict:
     """Render frame i (or a given pose): rgb [H, W, 3], depth [H, W] (m), opacity, semantic [H, W] uint8,
-    instance [H, W] int32 (window slots, 0 = stuff), after post-processing; samples_per_ray."""
+    instance [H, W] int32 (window slots, 0 = stuff), after post-processing; fruit [H, W] float32, the thing
+    classes' probability before it (a fruit's sliver the post-processing drops keeps it); samples_per_ray."""
     w, h = model.wh
     c2w, k, u, v = model.image_pixels(i, c2w, k)
     cfg = pres.cfg
@@ -37,6 +38,7 @@ def render_panoptic(model: NerfModel, pres: PanopticResult, i: int | None = None
     p_sem_img = torch.cat(p_sem).reshape(h, w, -1).cpu().numpy()
     depth_img = torch.cat(depth).reshape(h, w)
     sem, inst = labels_from_slots(p_sem_img, np.concatenate(slot).reshape(h, w), cfg, depth_img.cpu().numpy())
+    fruit = p_sem_img[..., list(cfg.thing_classes)].sum(-1).astype(np.float32)
     return {"rgb": torch.cat(rgb).reshape(h, w, 3), "depth": depth_img,
-            "opacity": torch.cat(opac).reshape(h, w), "semantic": sem, "instance": inst,
+            "opacity": torch.cat(opac).reshape(h, w), "semantic": sem, "instance": inst, "fruit": fruit,
             "samples_per_ray": n_eval / (h * w)}

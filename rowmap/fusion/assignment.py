@@ -40,7 +40,8 @@ FAR_LOSES = WEIGHTS["shape"] * (1 - SHAPE_INSIDE) > WEIGHTS["detector"]
 def terms(ev: Evidence, cfg: Config) -> dict[str, np.ndarray]:
     """Each term of the cost, [P, F + 1] (column 0 = background)."""
     n, cols = len(ev.pixels), np.arange(len(ev.ids) + 1)[None]
-    out = {"render": ev.confidence[:, None] * (cols != ev.render[:, None])}
+    doubt = np.where((ev.render[:, None] == 0) & (cols > 0), 1 - ev.fruit[:, None], 1.0)   # of a background call
+    out = {"render": ev.confidence[:, None] * (cols != ev.render[:, None]) * doubt}
     seg_fruit, unnamed = ev.detector[:, None], np.where(cols == 0, 1.0, OTHER_FRUIT)   # [P, 1], [1, F + 1]
     det = np.where(seg_fruit > 0, np.where(cols == seg_fruit, 0.0, unnamed), cols == 0)
     out["detector"] = (ev.detector >= 0)[:, None] * det

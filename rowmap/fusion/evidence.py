@@ -27,6 +27,7 @@ class Frame:
     segments: np.ndarray | None   # [H, W] detector segment ids (0 = none); None: no detector output
     k: np.ndarray        # (fx, fy, cx, cy)
     c2w: np.ndarray      # [4, 4] camera pose in the row frame
+    fruit: np.ndarray | None = None   # [H, W] the render's fruit probability; None: not rendered (taken as 0)
 
 
 @dataclass
@@ -39,6 +40,7 @@ class Evidence:
     points: np.ndarray      # [P, 3] world points
     render: np.ndarray      # [P] option the render paints (0 = background or void)
     confidence: np.ndarray  # [P] the render's confidence, [0, 1]
+    fruit: np.ndarray       # [P] the render's fruit probability, [0, 1] (a sliver its labels drop keeps it)
     detector: np.ndarray    # [P] option of the detector segment's fruit: -1 no segment, 0 a segment on no fruit
     segment: np.ndarray     # [P] detector segment id (0 = none)
     rel: np.ndarray | None = None      # [P, F] distance to the fruit's sphere centre / its radius (nan: no sphere)
@@ -56,8 +58,8 @@ class Evidence:
         rel, beyond, gap, radii = models.query(ids.tolist(), points, eye, cfg.margin_m)
         det = self.detector[rows]
         return Evidence(self.pixels[rows], ids, points, option[self.render[rows]], self.confidence[rows],
-                        np.where(det > 0, option[np.maximum(det, 0)], det), self.segment[rows], rel, beyond, gap,
-                        radii, self.boxes)
+                        self.fruit[rows], np.where(det > 0, option[np.maximum(det, 0)], det), self.segment[rows], rel,
+                        beyond, gap, radii, self.boxes)
 
 
 def frame_evidence(frame: Frame, models: FruitModels, owners: dict[tuple[int, int], int], cfg: Config) -> Evidence:
@@ -98,4 +100,5 @@ def pixel_evidence(frame: Frame, models: FruitModels, owners: dict[tuple[int, in
     return Evidence(pixels=v * w + u, ids=ids, points=unproject(frame.depth, frame.k, frame.c2w, v, u),
                     render=column[np.maximum(frame.label[v, u], 0)],
                     confidence=np.where(border, BORDER_CONFIDENCE, 1.0),
+                    fruit=np.zeros(len(v)) if frame.fruit is None else frame.fruit[v, u].astype(np.float64),
                     detector=np.where(segment > 0, column[owner[segment]], -1), segment=segment, boxes=boxes)

@@ -80,7 +80,8 @@ def fabricate_nerf(row: Row, seed: int = 0, hook: SlotHook | None = None) -> Non
             # the input rgb and depth PNGs are stored as renders are (8-bit colour, 16-bit mm): copied as they are
             for kind, src in (("rgb", fr.rgb_path), ("depth", fr.depth_path)):
                 shutil.copy(row.root / src, nerf / renders.file_name(wid, kind, r.frame_id))
-            renders.write_frame(nerf, wid, r.frame_id, {"semantic": sem, "instance": slots})
+            renders.write_frame(nerf, wid, r.frame_id, {"semantic": sem, "instance": slots,
+                                                        "fruit": (slots > 0).astype(np.float32)})
             render_rows += [(wid, r.frame_id, kind) for kind in renders.KINDS]
         metric_rows.append({"window_id": wid, "center_frame_id": int(w.center_frame_id.iloc[0]), "status": "ok",
                             "error": "", "preset": "cpu", "device": "cpu", "threads": 1,

@@ -52,6 +52,9 @@ def test_panoptic_phase_renders_the_classes_and_one_id_per_fruit(fitted):
         r = render_panoptic(model, pres, int(i))
         assert r["semantic"].shape == sem[i].shape and r["instance"].dtype == np.int32
         assert set(np.unique(r["instance"][np.isin(r["semantic"], [0, 1])])) <= {0}  # stuff carries no id
+        fruit = r["fruit"]   # the thing classes' probability: high where a fruit is labelled, low on stuff
+        assert fruit.shape == sem[i].shape and 0 <= fruit.min() and fruit.max() <= 1
+        assert np.median(fruit[r["instance"] > 0]) > 0.5 > np.median(fruit[np.isin(r["semantic"], [0, 1])])
         correct += int((r["semantic"] == sem[i]).sum())
         total += sem[i].size
         big = [f for f, n in zip(*np.unique(inst[i], return_counts=True)) if f > 0 and n >= 30]

@@ -39,11 +39,12 @@ def model(centre: np.ndarray, cfg: Config) -> FruitModel:
 
 
 def fuse(centres: list[np.ndarray], label: np.ndarray, depth: np.ndarray, segments: np.ndarray | None = None,
-         cfg: Config | None = None) -> np.ndarray:
-    """Fused ids of one frame whose render paints `label` (fruit i has id i + 1) over the scene's depth."""
+         cfg: Config | None = None, fruit: np.ndarray | None = None) -> np.ndarray:
+    """Fused ids of one frame whose render paints `label` (fruit i has id i + 1) over the scene's depth, with
+    the render's fruit probability `fruit` (None: not rendered)."""
     cfg = cfg or Config()
     models = FruitModels({i + 1: model(c, cfg) for i, c in enumerate(centres)})
-    frame = Frame(frame_id=0, label=label, depth=depth, segments=segments, k=K, c2w=np.eye(4))
+    frame = Frame(frame_id=0, label=label, depth=depth, segments=segments, k=K, c2w=np.eye(4), fruit=fruit)
     return fused_label(frame=frame, models=models, owners={}, cfg=cfg)[0]
 
 
@@ -92,6 +93,20 @@ def test_a_sliver_of_a_fruit_behind_a_neighbour_goes_to_the_fruit_behind():
     fused = fuse([front, back], label, depth)
     assert (fused[sliver] == 2).mean() > 0.9
     assert (fused[who == 0] == 1).all()
+
+
+def test_a_sliver_the_render_s_labels_drop_goes_to_its_fruit_where_the_render_s_fruit_probability_is_high():
+    front, back = np.array([0.0, 0.0, 0.45]), np.array([0.045, 0.0, 0.55])
+    depth, who = scene([front, back])
+    sliver = who == 1
+    label = np.where(who == 0, 1, 0)           # the render's post-processing dropped the sliver: background
+    assert (fuse([front, back], label, depth)[sliver] == 0).mean() > 0.9   # a background call without its doubt
+    fruit = np.where(who >= 0, 0.85, 0.02)     # what the render's classes said before the post-processing
+    fused = fuse([front, back], label, depth, fruit=fruit)
+    assert (fused[sliver] == 2).mean() > 0.9 and (fused[who == 0] == 1).all() and (fused[who < 0] == 0).all()
+    # a probable fruit far behind every fruit model (a leaf the render doubts) stays background
+    fused = fuse([front, back], label, depth, fruit=np.full(HW, 0.85))
+    assert (fused[who < 0] == 0).all()
 
 
 def test_a_detector_segment_merging_two_fruits_does_not_merge_their_ids():
@@ -248,8 +263,8 @@ def test_a_fruit_without_a_sphere_keeps_to_its_pixels_and_takes_no_stray_detecto
 
 def test_a_frame_assigned_in_tiles_gets_the_ids_of_every_pixel_against_every_candidate(monkeypatch):
     """fused_label works tile by tile, each tile with the candidates that can win there (tiles): on a crowded
-    frame with a render and a detector that err, and a fruit without a sphere, its ids equal the argmin of the
-    cost of every pixel against every candidate."""
+    frame with a render and a detector that err, a render that doubts its labels and a fruit without a sphere,
+    its ids equal the argmin of the cost of every pixel against every candidate."""
     import rowmap.fusion.assignment as assignment
     from rowmap.fusion import cost
 
@@ -271,7 +286,8 @@ def test_a_frame_assigned_in_tiles_gets_the_ids_of_every_pixel_against_every_can
     cfg = Config()
     models = FruitModels({i + 1: model(c, cfg) for i, c in enumerate(centres)})
     models[5] = FruitModel(class_id=2, points=np.zeros((0, 3)))   # a fruit without a sphere
-    frame = Frame(frame_id=0, label=label, depth=depth, segments=segments, k=K, c2w=np.eye(4))
+    fruit = rng.uniform(0.0, 1.0, HW)                          # the render's fruit probability, doubting anything
+    frame = Frame(frame_id=0, label=label, depth=depth, segments=segments, k=K, c2w=np.eye(4), fruit=fruit)
     monkeypatch.setattr(assignment, "TILE_PX", 16)
     ev = frame_evidence(frame=frame, models=models, owners={}, cfg=cfg)
     c = cost(ev, cfg)

@@ -13,7 +13,8 @@ def test_written_renders_read_back_through_the_table(tmp_path):
     h, w = 5, 7
     images = {"rgb": torch.from_numpy(rng.uniform(-0.2, 1.2, (h, w, 3)).astype(np.float32)),
               "depth": torch.from_numpy(rng.uniform(0.0, 3.0, (h, w)).astype(np.float32)),
-              "semantic": rng.integers(0, 5, (h, w)), "instance": rng.integers(0, 40000, (h, w))}
+              "semantic": rng.integers(0, 5, (h, w)), "instance": rng.integers(0, 40000, (h, w)),
+              "fruit": rng.uniform(0.0, 1.0, (h, w)).astype(np.float32)}
     nerf = tmp_path / "processed" / "seq" / "nerf"
     rows = renders.write_frame(nerf, 3, 12, images)
     assert [r["kind"] for r in rows] == list(renders.KINDS)
@@ -28,6 +29,7 @@ def test_written_renders_read_back_through_the_table(tmp_path):
     assert np.abs(depth - images["depth"].numpy()).max() <= 0.5 * renders.DEPTH_SCALE_M + 1e-6   # mm rounding
     np.testing.assert_array_equal(got.read(3, 12, "semantic"), images["semantic"])
     np.testing.assert_array_equal(got.read(3, 12, "instance"), images["instance"])
+    assert np.abs(got.read(3, 12, "fruit") - images["fruit"]).max() <= 0.5 / 255 + 1e-6   # 8-bit rounding
 
 
 def test_a_render_not_in_the_table_or_of_another_size_is_an_error(tmp_path):
