@@ -233,8 +233,8 @@ the `unseen9_` rows were defined after that reading (15ad44c), before the next c
 the `unseen10_` rows were defined after that reading (1292a31), before any later change, and are read once after it
 (unseen10_dense and unseen10_crowded as first defined, seeds 1202 and 1203, shared a miss rate with family rows and
 were read once; they were then redefined with new seeds and knob values, and read once again); the `unseen11_`
-rows, with values in no other row (unseen ones included), were defined after that reading (4c83c6c), before any
-later change, and are read once after it.
+rows, with values in no other row (unseen ones included), were defined after that reading (4c83c6c), before the
+next change (the render's fruit probability, b38abc0), and read once after it.
 Rows beyond the family's 8-40 fruits/m or 0.35 miss rate (0.40, 0.7 false positives per frame) test that mechanisms
 extrapolate."""
 
