@@ -38,7 +38,7 @@ def encode(kind: str, image) -> np.ndarray:
     uint16 mm; semantic -> uint8; instance -> uint16; fruit float [H, W] in [0, 1] -> uint8 x 255 (rgb and fruit
     given as uint8 are kept as they are). Accepts numpy arrays or (CPU or GPU) torch tensors."""
     a = image.detach().cpu().numpy() if hasattr(image, "detach") else np.asarray(image)
-    if kind == "rgb":
+    if kind in ("rgb", "fruit"):
         return a if a.dtype == np.uint8 else (np.clip(a, 0, 1) * 255).round().astype(np.uint8)
     if kind == "depth":
         return np.clip(a * 1000, 0, 65535).round().astype(np.uint16)
@@ -46,8 +46,6 @@ def encode(kind: str, image) -> np.ndarray:
         return a.astype(np.uint8)
     if kind == "instance":
         return a.astype(np.uint16)
-    if kind == "fruit":
-        return a if a.dtype == np.uint8 else (np.clip(a, 0, 1) * 255).round().astype(np.uint8)
     raise ValueError(f"unknown render kind {kind!r}; kinds: {list(KINDS)}")
 
 

@@ -42,14 +42,14 @@ def test_unseen_rows_share_no_seed_or_knob_value_with_any_earlier_row():
     assert len(UNSEEN) >= 4 and not {r.seed for r in UNSEEN} & {r.seed for r in earlier}
     every = (*earlier, *UNSEEN)
     assert len({r.seed for r in every}) == len(every)   # a new unseen row reuses no unseen row's seed either
-    for knob in ("fruits_per_m", "det_miss_rate", "det_false_pos_rate", "det_merge_rate", "odom_drift_m_per_m",
-                 "odom_yaw_drift_deg_per_m", "n_frames"):
+    knobs = ("fruits_per_m", "det_miss_rate", "det_false_pos_rate", "det_merge_rate", "odom_drift_m_per_m",
+             "odom_yaw_drift_deg_per_m", "n_frames")
+    for knob in knobs:
         assert not {getattr(r, knob) for r in UNSEEN} & {getattr(r, knob) for r in earlier}, knob
     assert all(family_row(r.name) is r and r.n_labelled >= 3 for r in UNSEEN)
     newest = [r for r in UNSEEN if r.name.split("_")[0] == UNSEEN[-1].name.split("_")[0]]
     others = [r for r in every if r not in newest]
-    for knob in ("fruits_per_m", "det_miss_rate", "det_false_pos_rate", "det_merge_rate", "odom_drift_m_per_m",
-                 "odom_yaw_drift_deg_per_m", "n_frames"):   # the rows defined last repeat no value of any row
+    for knob in knobs:   # the rows defined last repeat no value of any row
         assert not {getattr(r, knob) for r in newest} & {getattr(r, knob) for r in others}, knob
     for argv in (["--unseen", "--holdout"], ["--rows", UNSEEN[0].name], ["--unseen", "--rows", HOLDOUT[0].name]):
         with pytest.raises(SystemExit):  # before anything runs
