@@ -216,6 +216,18 @@ UNSEEN: tuple[FamilyRow, ...] = (
     FamilyRow("unseen11_weak", "a weak detector and strong drift at light density",
               seed=1304, fruits_per_m=15.25, det_miss_rate=0.3175, det_false_pos_rate=0.5475, det_merge_rate=0.0745,
               odom_drift_m_per_m=0.0465, odom_yaw_drift_deg_per_m=3.15, n_frames=137),
+    FamilyRow("unseen12_medium", "medium density, a good detector, typical drift",
+              seed=1401, fruits_per_m=19.25, det_miss_rate=0.1425, det_false_pos_rate=0.3225, det_merge_rate=0.0565,
+              odom_drift_m_per_m=0.0305, odom_yaw_drift_deg_per_m=2.27, n_frames=151),
+    FamilyRow("unseen12_dense", "dense, a noisy detector, mild drift",
+              seed=1402, fruits_per_m=32.25, det_miss_rate=0.2425, det_false_pos_rate=0.4425, det_merge_rate=0.1015,
+              odom_drift_m_per_m=0.0281, odom_yaw_drift_deg_per_m=1.83, n_frames=173),
+    FamilyRow("unseen12_crowded", "crowded, many merges, few false positives, drift between typical and strong",
+              seed=1403, fruits_per_m=38.75, det_miss_rate=0.1875, det_false_pos_rate=0.2475, det_merge_rate=0.1235,
+              odom_drift_m_per_m=0.0411, odom_yaw_drift_deg_per_m=2.57, n_frames=161),
+    FamilyRow("unseen12_weak", "a weak detector and strong drift at light density",
+              seed=1404, fruits_per_m=13.25, det_miss_rate=0.3275, det_false_pos_rate=0.5575, det_merge_rate=0.0765,
+              odom_drift_m_per_m=0.0455, odom_yaw_drift_deg_per_m=3.25, n_frames=143),
 )
 """Unseen rows (`pag bench rows --unseen`): seeds and knob values in no family or held-out row. Their outputs
 are read once, when a design is final, and reported as they come; nothing is tuned on them. The first four
@@ -234,7 +246,8 @@ the `unseen10_` rows were defined after that reading (1292a31), before any later
 (unseen10_dense and unseen10_crowded as first defined, seeds 1202 and 1203, shared a miss rate with family rows and
 were read once; they were then redefined with new seeds and knob values, and read once again); the `unseen11_`
 rows, with values in no other row (unseen ones included), were defined after that reading (4c83c6c), before the
-next change (the render's fruit probability, b38abc0), and read once after it.
+next change (the render's fruit probability, b38abc0), and read once after it; the `unseen12_` rows, with
+values in no other row, were defined after that reading (f330276), before any later change, and are read once after it.
 Rows beyond the family's 8-40 fruits/m or 0.35 miss rate (0.40, 0.7 false positives per frame) test that mechanisms
 extrapolate."""
 
