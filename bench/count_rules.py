@@ -5,8 +5,8 @@ row counted with every rule on, scored by the evaluate stage.
 
 The rules (fruit_count settings) are those that decide `counted`: fragments (min_count_frames,
 min_count_points, with the lone_fragment_m exemption), unconfirmed fruits (detector_alpha), the far row
-(max_depth_m), fruits wider than any fruit of the crop (max_count_diameter_m) and the fruits the detector alone
-tracks at a recording's ends (end_tracks). Only fruit_count and
+(max_depth_m), fruits wider than any fruit of the crop (max_count_diameter_m), one fruit under two ids
+(duplicate_within_m) and the fruits the detector alone tracks at a recording's ends (end_tracks). Only fruit_count and
 evaluate run again, through the runner in a temporary data/ linked to the row's, on the row's fused panoptic
 frames as they are on disk (the NeRF is not refitted, and the row's own tables are not touched), each with
 the row's resolved configuration and one rule switched off. By default the rows are the finished rows of
@@ -40,6 +40,7 @@ RULES_OFF: dict[str, dict[str, object]] = {
     "unconfirmed": {"detector_alpha": 0.0},
     "far_row": {"max_depth_m": 1e6},
     "oversize": {"max_count_diameter_m": 1e6},
+    "duplicates": {"duplicate_within_m": 0.0},
     "end_tracks": {"end_tracks": False},
 }
 """Per rule, the fruit_count settings that switch it off."""

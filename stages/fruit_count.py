@@ -78,6 +78,10 @@ class Config:
     recording is a fragment by size, and so is a stray piece of a fruit already counted, but the piece lies
     next to that fruit. Fragments closer than this to each other count once (the one with most points). About
     the smallest distance between two fruits' centres (a fruit diameter)."""
+    duplicate_within_m: float = 0.03
+    """metres, >= 0 (0 = off). Two counted fruits whose centres lie closer are one fruit under two ids (a window
+    painted it with two slots where no other window saw it): the one with fewer points is not counted. Two fruits'
+    centres lie at least the sum of their radii apart; keep it under the crop's smallest fruit radius."""
     max_count_diameter_m: float = 0.15
     """metres, > 0. A fruit whose measured diameter (diameter_m) exceeds this is not one fruit but pieces of
     several, or of a fruit and what lies behind it, under one id (most often a slot a window paints while
@@ -116,6 +120,8 @@ class Config:
             raise ValueError(f"fruit_count.mad_k must be > 0, got {self.mad_k}")
         if not self.lone_fragment_m >= 0:
             raise ValueError(f"fruit_count.lone_fragment_m must be >= 0, got {self.lone_fragment_m}")
+        if not self.duplicate_within_m >= 0:
+            raise ValueError(f"fruit_count.duplicate_within_m must be >= 0, got {self.duplicate_within_m}")
         if self.min_count_frames < 1 or self.min_count_points < 0:
             raise ValueError("fruit_count.min_count_frames must be >= 1 and min_count_points >= 0")
         if self.min_points < 4 or self.max_points_per_view < 1:
@@ -180,6 +186,19 @@ def lone_fragments(fruits: pd.DataFrame, candidates: list[int], min_distance_m: 
             out.append(f)
             taken_xyz.append(p)
     return out
+
+
+def duplicates(fruits: pd.DataFrame, within_m: float) -> list[int]:
+    """The counted fruits of `fruits` (fruit_id, x_m, y_m, z_m, counted, n_points) whose centre lies within
+    `within_m` of a counted fruit with more points (ties: the lower id is kept); [] at 0."""
+    counted = fruits[fruits.counted.astype(bool)].sort_values(["n_points", "fruit_id"], ascending=[False, True])
+    kept, out = np.zeros((0, 3)), []
+    for f, p in zip(counted.fruit_id, counted[["x_m", "y_m", "z_m"]].to_numpy(np.float64)):
+        if within_m > 0 and (np.linalg.norm(kept - p, axis=1) < within_m).any():
+            out.append(int(f))
+        else:
+            kept = np.vstack([kept, p])
+    return sorted(out)
 
 
 def majority_class(votes: np.ndarray) -> int:
@@ -415,6 +434,8 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
     fruits = pd.DataFrame(rows, columns=schemas.get("fruits").names) if rows else schemas.empty("fruits")
     lone = lone_fragments(fruits, lone_candidates, cfg.lone_fragment_m)
     fruits.loc[fruits.fruit_id.isin(lone), "counted"] = True
+    dups = duplicates(fruits, cfg.duplicate_within_m)
+    fruits.loc[fruits.fruit_id.isin(dups), "counted"] = False
     tracks = end_tracks(frames, pf, ctx.data_root, dropped_segments(inputs.get("detections_filtered")),
                         cfg.lone_fragment_m / 2, cfg.max_points_per_view, cfg.min_points) if end_tracks_on(cfg) else []
     ends = end_fruits(tracks, fruits, cfg)
@@ -448,7 +469,7 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
         ctx.note(f"fruits {too_wide}: measured wider than "
                  f"{cfg.max_count_diameter_m:g} m (max_count_diameter_m), pieces of several fruits under one id: "
                  f"in fruits.parquet with counted = false")
-    n_frag = int((fruits.near_row.astype(bool) & ~fruits.counted.astype(bool)).sum())
+    n_frag = int((fruits.near_row.astype(bool) & ~fruits.counted.astype(bool) & ~fruits.fruit_id.isin(dups)).sum())
     unconf = [f for f, (_, u) in support.items() if u]
     if unconf:
         ctx.note(f"fruits {unconf}: the detector confirms them in too few of their frames (detector_p < "
@@ -456,6 +477,9 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
     if lone:
         ctx.note(f"fruits {lone}: fragments by size, confirmed by the detector in every frame and farther than "
                  f"{cfg.lone_fragment_m:g} m from any counted fruit (lone_fragment_m): counted")
+    if dups:
+        ctx.note(f"fruits {dups}: within {cfg.duplicate_within_m:g} m of a counted fruit with more points, the same "
+                 f"fruit under a second id (duplicate_within_m): counted = false")
     if ends:
         ctx.note(f"fruits {[r['fruit_id'] for r in added]}: tracked by the detector where no two fused "
                  f"frames see them (the recording's ends, failed windows; end_tracks): counted, without fused pixels")
@@ -464,7 +488,7 @@ def run(inputs: dict, cfg: Config, ctx: StageContext) -> dict[str, pd.DataFrame]
                  f"under {cfg.min_count_points} points or pixels at 320x180), unconfirmed by the detector or wider "
                  f"than max_count_diameter_m; counted = false")
     ctx.summary.update(fruits=len(fruits), counted=len(near), far_row=n_far, fragments=n_frag, unconfirmed=len(unconf),
-                       oversize=len(too_wide), lone_fragments=len(lone), end_fruits=len(ends),
+                       oversize=len(too_wide), lone_fragments=len(lone), duplicates=len(dups), end_fruits=len(ends),
                        **{f"count_{c}": int(n) for c, n in zip(counts.class_name, counts["count"])})
     table = structure.table()
     ctx.summary["structure_voxels"] = len(table)

@@ -973,3 +973,16 @@ def test_the_structure_holds_the_rows_stuff_surfaces_and_leaves_the_fruits_out(p
     d = np.linalg.norm(xyz[:, None] - gt[["x_m", "y_m", "z_m"]].to_numpy()[None], axis=2) / gt.diameter_m.to_numpy()
     inside = (d < 0.45).any(1)                                             # within a fruit's surface
     assert inside.mean() < 0.005, inside.sum()
+
+
+def test_a_counted_fruit_lying_on_a_counted_fruit_with_more_points_is_one_fruit_under_two_ids():
+    # 1 and 2 lie 2 mm apart (one fruit a window painted with two slots), 3 touches 1 (two fruits, 6 cm apart),
+    # 4 lies on 1 but is not counted, 5 and 6 are a second pair with equal points (the lower id is kept)
+    fruits = pd.DataFrame({"fruit_id": [1, 2, 3, 4, 5, 6], "counted": [True, True, True, False, True, True],
+                           "n_points": [300, 900, 500, 50, 400, 400],
+                           "x_m": [0.0, 0.002, 0.06, 0.001, 0.5, 0.51], "y_m": 0.0, "z_m": 0.5})
+    assert fruit_count.duplicates(fruits, 0.03) == [1, 6]
+    assert fruit_count.duplicates(fruits, 0.0) == []                        # 0 = off
+    assert fruit_count.duplicates(fruits, 0.07) == [1, 3, 6]               # past two radii it merges neighbours
+    with pytest.raises(ValueError, match="duplicate_within_m"):
+        fruit_count.Config(duplicate_within_m=-0.01)
