@@ -171,34 +171,36 @@ def is_fragment(n_frames: int, n_points: int, ref_pixels: float, cfg: Config) ->
     return n_frames < cfg.min_count_frames or min(n_points, ref_pixels) < cfg.min_count_points
 
 
+def spaced(fruits: pd.DataFrame, ids: list[int], taken: list[np.ndarray], min_distance_m: float) -> list[int]:
+    """Of fruit `ids` (rows of `fruits`: fruit_id, x_m, y_m, z_m, n_points), most points first (ties: the lower
+    id), those whose centre lies farther than min_distance_m from every centre in `taken` and every id taken before."""
+    by_id = fruits.set_index("fruit_id")
+    taken, out = list(taken), []
+    for f in sorted(ids, key=lambda f: (-int(by_id.n_points[f]), f)):
+        p = by_id.loc[f, ["x_m", "y_m", "z_m"]].to_numpy(np.float64)
+        if all(np.linalg.norm(p - q) > min_distance_m for q in taken):
+            out.append(f)
+            taken.append(p)
+    return out
+
+
 def lone_fragments(fruits: pd.DataFrame, candidates: list[int], min_distance_m: float) -> list[int]:
     """The candidate fruit ids (fragments the detector confirms in every frame) to count after all: taken by
     points, most first, each only if no counted fruit of `fruits` (fruit_id, x_m, y_m, z_m, counted, n_points)
     and no candidate taken before lies within min_distance_m of its centre (0 = none)."""
     if min_distance_m <= 0 or not candidates:
         return []
-    by_id = fruits.set_index("fruit_id")
-    taken_xyz = list(fruits.loc[fruits.counted.astype(bool), ["x_m", "y_m", "z_m"]].to_numpy(np.float64))
-    out = []
-    for f in sorted(candidates, key=lambda f: (-int(by_id.n_points[f]), f)):
-        p = by_id.loc[f, ["x_m", "y_m", "z_m"]].to_numpy(np.float64)
-        if all(np.linalg.norm(p - q) > min_distance_m for q in taken_xyz):
-            out.append(f)
-            taken_xyz.append(p)
-    return out
+    counted = fruits.loc[fruits.counted.astype(bool), ["x_m", "y_m", "z_m"]].to_numpy(np.float64)
+    return spaced(fruits, candidates, list(counted), min_distance_m)
 
 
 def duplicates(fruits: pd.DataFrame, within_m: float) -> list[int]:
     """The counted fruits of `fruits` (fruit_id, x_m, y_m, z_m, counted, n_points) whose centre lies within
     `within_m` of a counted fruit with more points (ties: the lower id is kept); [] at 0."""
-    counted = fruits[fruits.counted.astype(bool)].sort_values(["n_points", "fruit_id"], ascending=[False, True])
-    kept, out = np.zeros((0, 3)), []
-    for f, p in zip(counted.fruit_id, counted[["x_m", "y_m", "z_m"]].to_numpy(np.float64)):
-        if within_m > 0 and (np.linalg.norm(kept - p, axis=1) < within_m).any():
-            out.append(int(f))
-        else:
-            kept = np.vstack([kept, p])
-    return sorted(out)
+    if within_m <= 0:
+        return []
+    counted = fruits.loc[fruits.counted.astype(bool), "fruit_id"].astype(int).tolist()
+    return sorted(set(counted) - set(spaced(fruits, counted, [], within_m)))
 
 
 def majority_class(votes: np.ndarray) -> int:

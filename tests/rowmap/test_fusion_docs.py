@@ -40,5 +40,6 @@ def test_the_settings_table_lists_every_setting_in_order_with_its_default():
     assert [r[0].strip("`") for r in rows] == [f.name for f in fields]
     for (_, what), f in zip(rows, fields):
         default = re.search(r"\(([^()]*)\)$", what).group(1)
-        expected = str(f.default).lower() if isinstance(f.default, bool) else str(f.default or "none")
+        expected = "none" if f.default == () else str(f.default)
+        expected = expected.lower() if isinstance(f.default, bool) else expected
         assert default == expected, f.name
